@@ -1,0 +1,170 @@
+//! The triangle mesh (or point cloud) type, its file formats, normalization and sampling.
+
+mod error;
+mod fps;
+mod normalize;
+
+pub use error::MeshError;
+pub use fps::farthest_point_sampling;
+pub use normalize::Normalization;
+
+/// A triangle mesh, or a point cloud when `faces` is empty.
+///
+/// Coordinates are `f32` (the precision every format we read stores); indices are `u32`.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Mesh {
+    pub vertices: Vec<[f32; 3]>,
+    pub faces: Vec<[u32; 3]>,
+    /// Per-vertex normals, when the source had them (point clouds with normals above all).
+    /// When present it has exactly one entry per vertex.
+    pub normals: Option<Vec<[f32; 3]>>,
+}
+
+impl Mesh {
+    pub fn new(vertices: Vec<[f32; 3]>, faces: Vec<[u32; 3]>) -> Self {
+        Self { vertices, faces, normals: None }
+    }
+
+    /// A mesh without faces: the points of a point cloud.
+    pub fn is_point_cloud(&self) -> bool {
+        self.faces.is_empty()
+    }
+
+    /// Checks the invariants every reader guarantees: indices in range, finite coordinates,
+    /// normals (if any) one per vertex.
+    pub fn validate(&self) -> Result<(), MeshError> {
+        let n = self.vertices.len();
+        if let Some(normals) = &self.normals {
+            if normals.len() != n {
+                return Err(MeshError::invalid(format!(
+                    "{} normals for {} vertices",
+                    normals.len(),
+                    n
+                )));
+            }
+        }
+        if let Some(i) = self.vertices.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+            return Err(MeshError::invalid(format!("vertex {i} has a non-finite coordinate")));
+        }
+        for (f, face) in self.faces.iter().enumerate() {
+            if let Some(&i) = face.iter().find(|&&i| i as usize >= n) {
+                return Err(MeshError::invalid(format!(
+                    "face {f} refers to vertex {i}, but there are {n} vertices"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Axis-aligned bounding box `(min, max)`, or `None` for an empty mesh.
+    pub fn bounds(&self) -> Option<([f32; 3], [f32; 3])> {
+        bounds(&self.vertices)
+    }
+
+    /// One unit normal per face (zero for a degenerate face), by the right-hand rule.
+    pub fn face_normals(&self) -> Vec<[f32; 3]> {
+        self.faces.iter().map(|f| triangle_normal(self.triangle(f))).collect()
+    }
+
+    /// Area-weighted per-vertex normals, for writers that want them (GLB) and for point clouds
+    /// sampled from meshes.
+    pub fn vertex_normals(&self) -> Vec<[f32; 3]> {
+        let mut acc = vec![[0.0f32; 3]; self.vertices.len()];
+        for f in &self.faces {
+            // The unnormalized cross product weights each face by twice its area.
+            let c = cross_of(self.triangle(f));
+            for &i in f {
+                for k in 0..3 {
+                    acc[i as usize][k] += c[k];
+                }
+            }
+        }
+        acc.into_iter().map(normalized).collect()
+    }
+
+    /// The three corner positions of a face.
+    pub fn triangle(&self, f: &[u32; 3]) -> [[f32; 3]; 3] {
+        [self.vertices[f[0] as usize], self.vertices[f[1] as usize], self.vertices[f[2] as usize]]
+    }
+
+    /// Total surface area.
+    pub fn area(&self) -> f64 {
+        self.faces.iter().map(|f| triangle_area(self.triangle(f))).sum()
+    }
+}
+
+/// Axis-aligned bounding box of a point set, or `None` when it is empty.
+pub fn bounds(points: &[[f32; 3]]) -> Option<([f32; 3], [f32; 3])> {
+    let first = *points.first()?;
+    Some(points.iter().fold((first, first), |(mut lo, mut hi), p| {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+        (lo, hi)
+    }))
+}
+
+fn cross_of([a, b, c]: [[f32; 3]; 3]) -> [f32; 3] {
+    let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+    [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+}
+
+fn normalized(v: [f32; 3]) -> [f32; 3] {
+    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    if len > 0.0 && len.is_finite() { [v[0] / len, v[1] / len, v[2] / len] } else { [0.0; 3] }
+}
+
+/// Unit normal of a triangle (zero when it is degenerate).
+pub fn triangle_normal(t: [[f32; 3]; 3]) -> [f32; 3] {
+    normalized(cross_of(t))
+}
+
+/// Area of a triangle, computed in f64 so that large, thin faces keep their weight.
+pub fn triangle_area([a, b, c]: [[f32; 3]; 3]) -> f64 {
+    let u = [(b[0] - a[0]) as f64, (b[1] - a[1]) as f64, (b[2] - a[2]) as f64];
+    let v = [(c[0] - a[0]) as f64, (c[1] - a[1]) as f64, (c[2] - a[2]) as f64];
+    let x = u[1] * v[2] - u[2] * v[1];
+    let y = u[2] * v[0] - u[0] * v[2];
+    let z = u[0] * v[1] - u[1] * v[0];
+    0.5 * (x * x + y * y + z * z).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit_square() -> Mesh {
+        Mesh::new(
+            vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]],
+            vec![[0, 1, 2], [0, 2, 3]],
+        )
+    }
+
+    #[test]
+    fn area_and_normals_of_a_square() {
+        let m = unit_square();
+        assert!((m.area() - 1.0).abs() < 1e-12);
+        for n in m.face_normals().into_iter().chain(m.vertex_normals()) {
+            assert_eq!(n, [0.0, 0.0, 1.0]);
+        }
+    }
+
+    #[test]
+    fn validate_rejects_bad_indices_and_nan() {
+        let mut m = unit_square();
+        assert!(m.validate().is_ok());
+        m.faces.push([0, 1, 9]);
+        assert!(m.validate().is_err());
+        let mut m = unit_square();
+        m.vertices[1][2] = f32::NAN;
+        assert!(m.validate().is_err());
+    }
+
+    #[test]
+    fn bounds_of_empty_is_none() {
+        assert_eq!(Mesh::default().bounds(), None);
+        assert_eq!(unit_square().bounds(), Some(([0.0; 3], [1.0, 1.0, 0.0])));
+    }
+}
