@@ -8,3 +8,4 @@ pub mod mesh;
 pub mod metrics;
 pub mod model;
 pub mod tokenize;
+pub mod train;

@@ -1,1 +1,43 @@
-fn main() {}
+//! The `meshstream` command: inspect, convert, sample and evaluate meshes (and, as the
+//! service grows, reconstruct and serve them).
+
+mod commands;
+
+use clap::{Parser, Subcommand};
+
+/// meshstream turns point clouds and dense meshes into clean, artist-style triangle meshes
+/// with the FACE method (one face, one token).
+///
+/// Mesh files can be OBJ, PLY (ASCII or binary), STL (ASCII or binary) and glTF 2.0 (.glb or
+/// .gltf); a PLY or OBJ with vertices only is a point cloud.
+#[derive(Parser)]
+#[command(name = "meshstream", version, about, long_about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Vertices, faces and the FACE sequence lengths of meshes (files or folders).
+    Stats(commands::stats::StatsArgs),
+    /// Convert a mesh between formats, optionally snapping it to the quantization grid.
+    Convert(commands::convert::ConvertArgs),
+    /// Sample points with normals uniformly by area on a mesh's surface.
+    Sample(commands::sample::SampleArgs),
+    /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
+    Eval(commands::eval::EvalArgs),
+    /// Benchmarks that print a table (run them in a release build).
+    #[command(subcommand)]
+    Bench(commands::bench::BenchCommand),
+}
+
+fn main() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Command::Stats(args) => commands::stats::run(&args),
+        Command::Convert(args) => commands::convert::run(&args),
+        Command::Sample(args) => commands::sample::run(&args),
+        Command::Eval(args) => commands::eval::run(&args),
+        Command::Bench(cmd) => commands::bench::run(&cmd),
+    }
+}

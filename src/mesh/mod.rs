@@ -1,10 +1,14 @@
 //! The triangle mesh (or point cloud) type, its file formats, normalization and sampling.
 
 mod error;
+mod files;
 mod fps;
 mod normalize;
+pub mod primitives;
+pub mod transform;
 
 pub use error::MeshError;
+pub use files::{expand_mesh_paths, mesh_files_in};
 pub use fps::farthest_point_sampling;
 pub use normalize::Normalization;
 

@@ -1,0 +1,92 @@
+//! Benchmarks that print a table. Timings on shared 2-core machines are noisy: compare the
+//! figures of one run with each other, never against a fixed threshold.
+
+use std::hint::black_box;
+use std::time::{Duration, Instant};
+
+use clap::Subcommand;
+use comfy_table::Table;
+use meshstream::mesh::{
+    Format, ReadLimits, farthest_point_sampling, primitives, read_mesh, sample_surface, write_mesh,
+};
+use meshstream::metrics::{MetricOptions, mesh_distances};
+use meshstream::tokenize::{Quantizer, tokenize_mesh};
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Parsing, tokenization, farthest point sampling and evaluation.
+    Mesh {
+        /// Minimum time spent on each measurement, in seconds.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+    },
+}
+
+pub fn run(cmd: &BenchCommand) -> anyhow::Result<()> {
+    match cmd {
+        BenchCommand::Mesh { seconds } => bench_mesh(Duration::from_secs_f64(*seconds)),
+    }
+}
+
+/// Runs `f` until `budget` has passed (at least once) and returns the mean time per run.
+fn time_per_run<T>(budget: Duration, mut f: impl FnMut() -> T) -> Duration {
+    let start = Instant::now();
+    let mut runs = 0u32;
+    while runs == 0 || start.elapsed() < budget {
+        black_box(f());
+        runs += 1;
+    }
+    start.elapsed() / runs
+}
+
+fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
+    // A dense, closed test surface: 512 x 256 UV sphere, about 262,000 faces.
+    let dense = primitives::uv_sphere(1.0, 512, 256);
+    let faces = dense.faces.len();
+    let mut table = Table::new();
+    table.set_header(["measurement", "input", "time per run", "throughput"]);
+
+    let limits = ReadLimits::default();
+    for format in Format::ALL {
+        let bytes = write_mesh(&dense, format)?;
+        let t = time_per_run(budget, || read_mesh(&bytes, format, &limits));
+        let mb = bytes.len() as f64 / 1e6;
+        table.add_row([
+            format!("parse {format}"),
+            format!("{faces} faces, {mb:.1} MB"),
+            format!("{:.1} ms", t.as_secs_f64() * 1e3),
+            format!("{:.0} MB/s", mb / t.as_secs_f64()),
+        ]);
+    }
+
+    let q = Quantizer::new(meshstream::tokenize::DEFAULT_LEVELS)?;
+    let t = time_per_run(budget, || tokenize_mesh(&dense, q));
+    table.add_row([
+        "tokenize (normalize, quantize, weld, order)".to_string(),
+        format!("{faces} faces, Q = {}", q.levels()),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.2} M faces/s", faces as f64 / t.as_secs_f64() / 1e6),
+    ]);
+
+    let cloud = sample_surface(&dense, 65_536, 0)?;
+    let t = time_per_run(budget, || farthest_point_sampling(&cloud.vertices, 2048, 0));
+    table.add_row([
+        "farthest point sampling".to_string(),
+        "2,048 of 65,536 points".to_string(),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.0} K points/s", 65_536.0 / t.as_secs_f64() / 1e3),
+    ]);
+
+    let pred = primitives::uv_sphere(1.1, 64, 32);
+    let gt = primitives::uv_sphere(1.0, 256, 128);
+    let opts = MetricOptions::default();
+    let t = time_per_run(budget, || mesh_distances(&pred, &gt, &opts));
+    table.add_row([
+        "eval one pair (sample, k-d trees, CD + HD)".to_string(),
+        format!("N = {} points per surface", opts.samples),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.1} pairs/s", 1.0 / t.as_secs_f64()),
+    ]);
+    println!("{table}");
+    Ok(())
+}

@@ -1,0 +1,136 @@
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use comfy_table::Table;
+use meshstream::mesh::mesh_files_in;
+use meshstream::metrics::{EvalRecord, EvalSummary, MetricOptions, mesh_distances, summarize};
+use serde::Serialize;
+
+use super::{display_name, load_mesh};
+
+#[derive(Args)]
+pub struct EvalArgs {
+    /// Predicted mesh, or a folder of them (matched to ground truth by file stem).
+    #[arg(long)]
+    pred: PathBuf,
+    /// Ground-truth mesh, or a folder of them. Every ground-truth mesh is one row: a
+    /// prediction that is missing, unreadable or empty is a failure, counted and listed.
+    #[arg(long)]
+    gt: PathBuf,
+    /// Points sampled on each surface.
+    #[arg(long, default_value_t = MetricOptions::default().samples)]
+    samples: usize,
+    /// Sampling seed.
+    #[arg(long, default_value_t = MetricOptions::default().seed)]
+    seed: u64,
+    /// Print JSON instead of tables.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Serialize)]
+struct Row {
+    name: String,
+    chamfer: Option<f64>,
+    hausdorff: Option<f64>,
+    failure: Option<String>,
+}
+
+pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    let pairs = pair_up(&args.pred, &args.gt)?;
+    let opts = MetricOptions { samples: args.samples, seed: args.seed };
+    let records: Vec<EvalRecord> = pairs
+        .iter()
+        .map(|(name, pred, gt)| EvalRecord {
+            name: name.clone(),
+            result: evaluate_pair(pred.as_deref(), gt, &opts),
+        })
+        .collect();
+    let summary = summarize(&records);
+    let rows: Vec<Row> = records
+        .iter()
+        .map(|r| match &r.result {
+            Ok(d) => Row {
+                name: r.name.clone(),
+                chamfer: Some(d.chamfer),
+                hausdorff: Some(d.hausdorff),
+                failure: None,
+            },
+            Err(e) => Row {
+                name: r.name.clone(),
+                chamfer: None,
+                hausdorff: None,
+                failure: Some(e.clone()),
+            },
+        })
+        .collect();
+    if args.json {
+        let out = serde_json::json!({ "meshes": rows, "summary": summary });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    } else {
+        print_tables(&rows, &summary);
+    }
+    Ok(())
+}
+
+/// (name, prediction if found, ground truth) for every ground-truth mesh.
+fn pair_up(pred: &Path, gt: &Path) -> anyhow::Result<Vec<(String, Option<PathBuf>, PathBuf)>> {
+    if !gt.is_dir() {
+        anyhow::ensure!(!pred.is_dir(), "--pred is a folder but --gt is a single file");
+        return Ok(vec![(display_name(gt), pred.exists().then(|| pred.to_path_buf()), gt.into())]);
+    }
+    anyhow::ensure!(pred.is_dir(), "--gt is a folder, so --pred must be a folder too");
+    let mut by_stem: BTreeMap<String, PathBuf> = BTreeMap::new();
+    for path in mesh_files_in(pred)? {
+        // Files are sorted, so with two predictions of one stem the first by name wins.
+        by_stem.entry(stem(&path)).or_insert(path);
+    }
+    let gts = mesh_files_in(gt)?;
+    anyhow::ensure!(!gts.is_empty(), "no ground-truth meshes in {}", gt.display());
+    Ok(gts
+        .into_iter()
+        .map(|g| {
+            let name = stem(&g);
+            let p = by_stem.get(&name).cloned();
+            (name, p, g)
+        })
+        .collect())
+}
+
+fn stem(path: &Path) -> String {
+    path.file_stem().map_or_else(String::new, |s| s.to_string_lossy().into_owned())
+}
+
+/// Distances for one pair, or why the prediction counts as a failure.
+fn evaluate_pair(
+    pred: Option<&Path>,
+    gt: &Path,
+    opts: &MetricOptions,
+) -> Result<meshstream::metrics::Distances, String> {
+    let pred = pred.ok_or("missing prediction")?;
+    let pred = load_mesh(pred).map_err(|e| format!("unreadable prediction: {e:#}"))?;
+    let gt = load_mesh(gt).map_err(|e| format!("unreadable ground truth: {e:#}"))?;
+    mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())
+}
+
+fn print_tables(rows: &[Row], s: &EvalSummary) {
+    let mut table = Table::new();
+    table.set_header(["mesh", "CD", "HD", "failure"]);
+    let fmt = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
+    for r in rows {
+        table.add_row([
+            r.name.clone(),
+            fmt(r.chamfer),
+            fmt(r.hausdorff),
+            r.failure.clone().unwrap_or_default(),
+        ]);
+    }
+    println!("{table}");
+    let mut sum = Table::new();
+    sum.set_header(["set", "CD", "HD"]);
+    sum.add_row(["mean".to_string(), fmt(s.chamfer_mean), fmt(s.hausdorff_mean)]);
+    sum.add_row(["median".to_string(), fmt(s.chamfer_median), fmt(s.hausdorff_median)]);
+    println!("{sum}");
+    println!("meshes: {}, evaluated: {}, failures: {}", s.count, s.evaluated, s.failures);
+}

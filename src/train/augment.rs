@@ -1,0 +1,115 @@
+//! Augmentation as in the paper: random rotation, random flips, independent scaling per axis.
+
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::mesh::Mesh;
+use crate::mesh::transform::{Mat3, mat_mul, rotation, rotation_from_quaternion, scaling};
+
+/// Which rotations augmentation draws from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Rotation {
+    /// No rotation.
+    None,
+    /// Any angle about the vertical (z) axis: artist meshes mostly stand upright.
+    Upright,
+    /// One of the 24 rotations of the cube: keeps axis-aligned faces axis-aligned.
+    RightAngles,
+    /// Uniformly random in 3-D.
+    Full,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AugmentConfig {
+    pub rotation: Rotation,
+    /// Probability of mirroring along each axis, drawn independently per axis.
+    pub flip_probability: f32,
+    /// Each axis is scaled by a factor drawn uniformly from `[1 - s, 1 + s]`.
+    pub scale_jitter: f32,
+}
+
+impl AugmentConfig {
+    /// No augmentation, for evaluation.
+    pub const OFF: AugmentConfig =
+        AugmentConfig { rotation: Rotation::None, flip_probability: 0.0, scale_jitter: 0.0 };
+}
+
+impl Default for AugmentConfig {
+    fn default() -> Self {
+        Self { rotation: Rotation::Upright, flip_probability: 0.5, scale_jitter: 0.25 }
+    }
+}
+
+/// A random linear map drawn from the configuration.
+pub fn random_transform(cfg: &AugmentConfig, rng: &mut impl Rng) -> Mat3 {
+    let rot = match cfg.rotation {
+        Rotation::None => crate::mesh::transform::IDENTITY,
+        Rotation::Upright => {
+            rotation([0.0, 0.0, 1.0], rng.random_range(0.0..std::f32::consts::TAU))
+        }
+        Rotation::RightAngles => right_angle_rotation(rng.random_range(0..24)),
+        Rotation::Full => {
+            rotation_from_quaternion(std::array::from_fn(|_| StandardNormal.sample(rng)))
+        }
+    };
+    let s = cfg.scale_jitter.clamp(0.0, 0.9);
+    let factors: [f32; 3] = std::array::from_fn(|_| {
+        let flip = if rng.random::<f32>() < cfg.flip_probability { -1.0 } else { 1.0 };
+        let scale = if s > 0.0 { rng.random_range(1.0 - s..=1.0 + s) } else { 1.0 };
+        flip * scale
+    });
+    mat_mul(&scaling(factors), &rot)
+}
+
+/// The `i`-th of the 24 proper rotations of the cube (i in 0..24): one of 6 directions for the
+/// x axis, then one of 4 quarter turns about it.
+fn right_angle_rotation(i: usize) -> Mat3 {
+    use std::f32::consts::{FRAC_PI_2, PI};
+    let to_face: [Mat3; 6] = [
+        crate::mesh::transform::IDENTITY,
+        rotation([0.0, 0.0, 1.0], PI),
+        rotation([0.0, 0.0, 1.0], FRAC_PI_2),
+        rotation([0.0, 0.0, 1.0], -FRAC_PI_2),
+        rotation([0.0, 1.0, 0.0], FRAC_PI_2),
+        rotation([0.0, 1.0, 0.0], -FRAC_PI_2),
+    ];
+    let spin = rotation([1.0, 0.0, 0.0], FRAC_PI_2 * (i % 4) as f32);
+    // Round away the float noise so axis-aligned stays exactly axis-aligned.
+    mat_mul(&to_face[(i / 4) % 6], &spin).map(|row| row.map(f32::round))
+}
+
+/// The mesh under a random augmentation (winding kept outward, see `Mesh::transformed`).
+pub fn augment(mesh: &Mesh, cfg: &AugmentConfig, rng: &mut impl Rng) -> Mesh {
+    mesh.transformed(&random_transform(cfg, rng), [0.0; 3])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::transform::determinant;
+    use rand::SeedableRng;
+
+    #[test]
+    fn right_angle_rotations_are_24_distinct_proper_rotations() {
+        let all: Vec<Mat3> = (0..24).map(right_angle_rotation).collect();
+        for (i, m) in all.iter().enumerate() {
+            assert_eq!(determinant(m), 1.0);
+            assert!(m.iter().flatten().all(|v| [-1.0, 0.0, 1.0].contains(v)));
+            assert!(all[..i].iter().all(|other| other != m), "rotation {i} repeats");
+        }
+    }
+
+    #[test]
+    fn off_is_the_identity_and_default_varies() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        assert_eq!(
+            random_transform(&AugmentConfig::OFF, &mut rng),
+            crate::mesh::transform::IDENTITY
+        );
+        let a = random_transform(&AugmentConfig::default(), &mut rng);
+        let b = random_transform(&AugmentConfig::default(), &mut rng);
+        assert_ne!(a, b);
+    }
+}

@@ -1,0 +1,274 @@
+//! Training samples and batches. A batch is a pure function of (seed, batch index), so a
+//! resumed run sees exactly the data it would have seen, and batches can be made ahead on a
+//! thread of their own while the model trains.
+
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::mesh::{Mesh, farthest_point_sampling, sample_surface};
+use crate::tokenize::{FaceToken, Quantizer, tokenize};
+
+use super::TrainError;
+use super::augment::{AugmentConfig, augment};
+use super::dataset::FolderData;
+use super::procedural::ProceduralShapes;
+
+/// One mesh ready for the model: its face tokens and the encoder's input.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainingSample {
+    pub name: String,
+    pub faces: Vec<FaceToken>,
+    /// Surface points in the normalized frame, with unit normals.
+    pub points: Vec<[f32; 3]>,
+    pub normals: Vec<[f32; 3]>,
+    /// Farthest-point-sampled indices into `points`: the encoder's queries.
+    pub queries: Vec<u32>,
+}
+
+/// How one mesh becomes a sample.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct SampleConfig {
+    pub levels: u16,
+    pub num_points: usize,
+    pub num_queries: usize,
+    pub augment: AugmentConfig,
+}
+
+/// Augments, normalizes and tokenizes `mesh`, and samples the encoder's points from the
+/// augmented surface. `None` when the result has no faces or more than `max_faces`.
+pub fn prepare_sample(
+    name: &str,
+    mesh: &Mesh,
+    cfg: &SampleConfig,
+    max_faces: usize,
+    rng: &mut ChaCha8Rng,
+) -> Result<Option<TrainingSample>, TrainError> {
+    let q = Quantizer::new(cfg.levels)?;
+    let (normalized, _) = augment(mesh, &cfg.augment, rng).normalized()?;
+    let faces = tokenize(&normalized, q).faces;
+    if faces.is_empty() || faces.len() > max_faces {
+        return Ok(None);
+    }
+    let cloud = sample_surface(&normalized, cfg.num_points, rng.random())?;
+    let start = rng.random_range(0..cloud.vertices.len().max(1));
+    let queries = farthest_point_sampling(&cloud.vertices, cfg.num_queries, start)
+        .into_iter()
+        .map(|i| i as u32)
+        .collect();
+    Ok(Some(TrainingSample {
+        name: name.to_string(),
+        faces,
+        normals: cloud.normals.unwrap_or_default(),
+        points: cloud.vertices,
+        queries,
+    }))
+}
+
+/// The largest mesh (in faces) allowed from a step on: small meshes first, so that shape
+/// conditioning and the end of a mesh are learned before long sequences.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct CurriculumStage {
+    pub from_step: u64,
+    pub max_faces: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct BatchConfig {
+    pub sample: SampleConfig,
+    /// Faces per batch (start/end positions included): batches are filled up to this.
+    pub faces_per_batch: usize,
+    /// Fraction of samples drawn from the procedural generator rather than the folder.
+    pub procedural_ratio: f32,
+    /// Sorted by `from_step`; the first stage applies before its step too.
+    pub curriculum: Vec<CurriculumStage>,
+    /// The model's face limit: the last stage never exceeds it.
+    pub max_faces: usize,
+    pub seed: u64,
+}
+
+impl BatchConfig {
+    pub fn max_faces_at(&self, step: u64) -> usize {
+        let stage = self.curriculum.iter().rev().find(|s| s.from_step <= step);
+        stage
+            .or(self.curriculum.first())
+            .map_or(self.max_faces, |s| s.max_faces.min(self.max_faces))
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct Batch {
+    pub index: u64,
+    pub samples: Vec<TrainingSample>,
+}
+
+impl Batch {
+    /// Face positions the decoder processes: each sample's faces plus its end-of-mesh step.
+    pub fn positions(&self) -> usize {
+        self.samples.iter().map(|s| s.faces.len() + 1).sum()
+    }
+}
+
+/// Meshes of the folder sorted by face count, so each curriculum stage picks among a prefix.
+pub struct BatchSource {
+    folder: Option<Arc<FolderData>>,
+    by_faces: Vec<usize>,
+    cfg: BatchConfig,
+}
+
+impl BatchSource {
+    pub fn new(folder: Option<Arc<FolderData>>, cfg: BatchConfig) -> Self {
+        let mut by_faces: Vec<usize> = (0..folder.as_ref().map_or(0, |f| f.meshes.len())).collect();
+        if let Some(f) = &folder {
+            by_faces.sort_by_key(|&i| f.meshes[i].faces);
+        }
+        Self { folder, by_faces, cfg }
+    }
+
+    /// Batch number `index` (a pure function of the seed and the index).
+    pub fn batch(&self, index: u64) -> Result<Batch, TrainError> {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
+        rng.set_stream(index);
+        let max_faces = self.cfg.max_faces_at(index);
+        let eligible = self
+            .folder
+            .as_ref()
+            .map_or(0, |f| self.by_faces.partition_point(|&i| f.meshes[i].faces <= max_faces));
+        let mut procedural = ProceduralShapes::new(rng.random(), max_faces);
+        let mut samples = Vec::new();
+        let mut positions = 0;
+        // Bounded attempts: augmentation can push a mesh over the limit, so some draws fail.
+        for _ in 0..self.cfg.faces_per_batch.max(16) {
+            let from_folder = eligible > 0 && rng.random::<f32>() >= self.cfg.procedural_ratio;
+            let (name, mesh) = match (&self.folder, from_folder) {
+                (Some(f), true) => {
+                    let record = &f.meshes[self.by_faces[rng.random_range(0..eligible)]];
+                    (record.name.clone(), record.mesh.clone())
+                }
+                _ => match procedural.next() {
+                    Some((kind, mesh)) => (format!("{kind:?}"), mesh),
+                    None => continue,
+                },
+            };
+            let Some(sample) = prepare_sample(&name, &mesh, &self.cfg.sample, max_faces, &mut rng)?
+            else {
+                continue;
+            };
+            let len = sample.faces.len() + 1;
+            if !samples.is_empty() && positions + len > self.cfg.faces_per_batch {
+                break;
+            }
+            positions += len;
+            samples.push(sample);
+        }
+        Ok(Batch { index, samples })
+    }
+}
+
+/// Makes batches `start, start + 1, ...` ahead of the trainer on its own thread. Dropping it
+/// stops the thread at its next send.
+pub struct Prefetcher {
+    rx: Receiver<Result<Batch, TrainError>>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl Prefetcher {
+    pub fn spawn(source: BatchSource, start: u64, depth: usize) -> Self {
+        let (tx, rx): (SyncSender<_>, _) = sync_channel(depth.max(1));
+        let handle = std::thread::Builder::new()
+            .name("batch-prefetch".into())
+            .spawn(move || {
+                for index in start.. {
+                    if tx.send(source.batch(index)).is_err() {
+                        return;
+                    }
+                }
+            })
+            .ok();
+        Self { rx, handle }
+    }
+
+    /// The next batch, in index order; `None` if the thread could not start or stopped.
+    pub fn next_batch(&self) -> Option<Result<Batch, TrainError>> {
+        self.rx.recv().ok()
+    }
+}
+
+impl Drop for Prefetcher {
+    fn drop(&mut self) {
+        // Closing the receiver makes the thread's next send fail, which ends it.
+        let (_, dead) = sync_channel(1);
+        drop(std::mem::replace(&mut self.rx, dead));
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(faces_per_batch: usize) -> BatchConfig {
+        BatchConfig {
+            sample: SampleConfig {
+                levels: 128,
+                num_points: 256,
+                num_queries: 32,
+                augment: AugmentConfig::default(),
+            },
+            faces_per_batch,
+            procedural_ratio: 1.0,
+            curriculum: vec![
+                CurriculumStage { from_step: 0, max_faces: 40 },
+                CurriculumStage { from_step: 10, max_faces: 400 },
+            ],
+            max_faces: 200,
+            seed: 5,
+        }
+    }
+
+    #[test]
+    fn batches_are_a_function_of_their_index() {
+        let source = BatchSource::new(None, config(300));
+        let a = source.batch(3).unwrap();
+        let b = source.batch(3).unwrap();
+        assert_eq!(a.samples, b.samples);
+        assert_ne!(source.batch(4).unwrap().samples, a.samples);
+    }
+
+    #[test]
+    fn budget_curriculum_and_samples_are_respected() {
+        let cfg = config(300);
+        assert_eq!(cfg.max_faces_at(0), 40);
+        assert_eq!(cfg.max_faces_at(50), 200, "capped by the model's limit");
+        let source = BatchSource::new(None, cfg);
+        for index in [0, 1, 2, 20] {
+            let batch = source.batch(index).unwrap();
+            assert!(!batch.samples.is_empty());
+            assert!(batch.positions() <= 300 || batch.samples.len() == 1);
+            let limit = if index < 10 { 40 } else { 200 };
+            for s in &batch.samples {
+                assert!(!s.faces.is_empty() && s.faces.len() <= limit, "{} faces", s.faces.len());
+                assert!(crate::tokenize::is_canonical_sequence(&s.faces));
+                assert_eq!(s.points.len(), 256);
+                assert_eq!(s.normals.len(), 256);
+                assert_eq!(s.queries.len(), 32);
+                assert!(s.points.iter().flatten().all(|c| c.abs() <= 1.0 + 1e-5));
+            }
+        }
+    }
+
+    #[test]
+    fn prefetcher_delivers_in_order_and_stops_when_dropped() {
+        let prefetch = Prefetcher::spawn(BatchSource::new(None, config(200)), 7, 2);
+        for expected in 7..10 {
+            assert_eq!(prefetch.next_batch().unwrap().unwrap().index, expected);
+        }
+        drop(prefetch);
+    }
+}
