@@ -1,11 +1,22 @@
 //! The triangle mesh (or point cloud) type, its file formats, normalization and sampling.
 
+mod assemble;
 mod error;
+mod format;
 mod fps;
+mod gltf_read;
+mod gltf_write;
+mod limits;
 mod normalize;
+mod obj;
+mod ply;
+mod stl;
+mod text;
 
 pub use error::MeshError;
+pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
+pub use limits::ReadLimits;
 pub use normalize::Normalization;
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
