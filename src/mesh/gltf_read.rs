@@ -89,8 +89,32 @@ fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
         return Err(unsupported(format!("required extension {ext}")));
     }
     root.extensions_required.clear();
-    let document = Document::from_json(root).map_err(|e| malformed(e.to_string()))?;
-    Ok((document, gltf.blob))
+    validate(&root)?;
+    Ok((Document::from_json_without_validation(root), gltf.blob))
+}
+
+/// The crate's validation (every index refers to something that exists, which the document
+/// accessors rely on), less two checks whose absence we handle: POSITION `min`/`max`, which
+/// many exporters omit and we never use, and an accessor without a buffer view, which is how
+/// Draco-compressed primitives look and is reported when the accessor is read.
+fn validate(root: &gltf_json::Root) -> Result<(), MeshError> {
+    use gltf_json::validation::{Error, Validate};
+    let mut problems = Vec::new();
+    root.validate(root, gltf_json::Path::new, &mut |path, error| {
+        let path = path();
+        let tolerated = matches!(error, Error::Missing)
+            && ["[\"POSITION\"].min", "[\"POSITION\"].max", "].bufferView"]
+                .iter()
+                .any(|end| path.as_str().ends_with(end));
+        if !tolerated {
+            problems.push(format!("{path}: {error}"));
+        }
+    });
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(malformed(format!("invalid glTF: {}", problems.join("; "))))
+    }
 }
 
 fn appearance_only(extension: &str) -> bool {
@@ -316,10 +340,12 @@ impl<'b> Context<'b> {
             .ok_or_else(|| {
                 malformed(format!("buffer view {} runs past its buffer", view.index()))
             })?;
-        let needed = match count {
-            0 => Some(0),
-            n => (n - 1).checked_mul(stride).and_then(|b| b.checked_add(size)),
-        };
+        if count == 0 {
+            return Err(malformed(format!(
+                "accessor {i} ({semantic}) is empty; glTF requires count >= 1"
+            )));
+        }
+        let needed = (count - 1).checked_mul(stride).and_then(|b| b.checked_add(size));
         let data = needed
             .filter(|_| stride >= size && size > 0)
             .and_then(|needed| {
