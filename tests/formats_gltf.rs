@@ -219,23 +219,23 @@ fn hostile_files_give_typed_errors() {
     let mut bin = Bin::default();
     let doc = triangle_doc(&mut bin);
     let good = bin.document(doc);
-    let mutations: Vec<Box<dyn Fn(&mut Value)>> = vec![
-        Box::new(|d| d["accessors"][0]["count"] = json!(1u64 << 40)),
-        Box::new(|d| d["accessors"][0]["count"] = json!(0)),
-        Box::new(|d| d["accessors"][0]["byteOffset"] = json!(8)),
-        Box::new(|d| d["bufferViews"][0]["byteStride"] = json!(4)),
-        Box::new(|d| d["bufferViews"][0]["byteLength"] = json!(1000)),
-        Box::new(|d| d["accessors"][0]["componentType"] = json!(5121)),
-        Box::new(|d| d["buffers"][0]["byteLength"] = json!(1u64 << 40)),
-        Box::new(|d| {
+    let mutations: &[fn(&mut Value)] = &[
+        |d| d["accessors"][0]["count"] = json!(1u64 << 40),
+        |d| d["accessors"][0]["count"] = json!(0),
+        |d| d["accessors"][0]["byteOffset"] = json!(8),
+        |d| d["bufferViews"][0]["byteStride"] = json!(4),
+        |d| d["bufferViews"][0]["byteLength"] = json!(1000),
+        |d| d["accessors"][0]["componentType"] = json!(5121),
+        |d| d["buffers"][0]["byteLength"] = json!(1u64 << 40),
+        |d| {
             d["scenes"] = json!([{"nodes": [0]}]);
             d["nodes"] = json!([{"children": [1]}, {"children": [0], "mesh": 0}]);
-        }),
-        Box::new(|d| {
+        },
+        |d| {
             d["meshes"][0]["primitives"][0]["indices"] = json!(1);
             let indices = json!({"bufferView": 0, "byteOffset": 12, "componentType": 5125, "type": "SCALAR", "count": 3});
             d["accessors"].as_array_mut().unwrap().push(indices);
-        }),
+        },
     ];
     for (i, mutate) in mutations.iter().enumerate() {
         let mut doc = good.clone();

@@ -76,7 +76,7 @@ fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
     // The crate subtracts the header size from the declared length without checking it.
     if bytes.starts_with(b"glTF") {
         let declared = bytes.get(8..12).and_then(|b| b.try_into().ok()).map(u32::from_le_bytes);
-        if !declared.is_some_and(|n| n >= 12) {
+        if declared.is_none_or(|n| n < 12) {
             return Err(malformed("truncated GLB header"));
         }
     }
@@ -444,7 +444,7 @@ fn triangles(mode: Mode, indices: &[u32]) -> Result<Vec<[u32; 3]>, MeshError> {
     let strip_or_fan = v.len().saturating_sub(2);
     Ok(match mode {
         Mode::Triangles => {
-            if v.len() % 3 != 0 {
+            if !v.len().is_multiple_of(3) {
                 return Err(malformed(format!("{} indices do not make whole triangles", v.len())));
             }
             v.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect()

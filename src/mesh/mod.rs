@@ -45,14 +45,14 @@ impl Mesh {
     /// normals (if any) one per vertex.
     pub fn validate(&self) -> Result<(), MeshError> {
         let n = self.vertices.len();
-        if let Some(normals) = &self.normals {
-            if normals.len() != n {
-                return Err(MeshError::invalid(format!(
-                    "{} normals for {} vertices",
-                    normals.len(),
-                    n
-                )));
-            }
+        if let Some(normals) = &self.normals
+            && normals.len() != n
+        {
+            return Err(MeshError::invalid(format!(
+                "{} normals for {} vertices",
+                normals.len(),
+                n
+            )));
         }
         if let Some(i) = self.vertices.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
             return Err(MeshError::invalid(format!("vertex {i} has a non-finite coordinate")));
