@@ -1,15 +1,26 @@
 //! The triangle mesh (or point cloud) type, its file formats, normalization and sampling.
 
+mod assemble;
 mod error;
 mod files;
+mod format;
 mod fps;
+mod gltf_read;
+mod gltf_write;
+mod limits;
 mod normalize;
+mod obj;
+mod ply;
 pub mod primitives;
+mod stl;
+mod text;
 pub mod transform;
 
 pub use error::MeshError;
 pub use files::{expand_mesh_paths, mesh_files_in};
+pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
+pub use limits::ReadLimits;
 pub use normalize::Normalization;
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
@@ -38,14 +49,14 @@ impl Mesh {
     /// normals (if any) one per vertex.
     pub fn validate(&self) -> Result<(), MeshError> {
         let n = self.vertices.len();
-        if let Some(normals) = &self.normals {
-            if normals.len() != n {
-                return Err(MeshError::invalid(format!(
-                    "{} normals for {} vertices",
-                    normals.len(),
-                    n
-                )));
-            }
+        if let Some(normals) = &self.normals
+            && normals.len() != n
+        {
+            return Err(MeshError::invalid(format!(
+                "{} normals for {} vertices",
+                normals.len(),
+                n
+            )));
         }
         if let Some(i) = self.vertices.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
             return Err(MeshError::invalid(format!("vertex {i} has a non-finite coordinate")));

@@ -1,0 +1,462 @@
+//! glTF 2.0 (`.gltf` JSON and `.glb`) through the `gltf` crate: every triangle primitive of
+//! the default scene (or of all scenes when none is the default), node transforms applied.
+//! A file whose only geometry is POINTS primitives is read as a point cloud.
+//!
+//! Accessor data is read here rather than through `gltf::mesh::Reader`, because that reader
+//! trusts the file (mismatched strides or counts panic inside it); every range is checked first.
+
+use std::path::Path;
+
+use gltf::accessor::{Accessor, DataType, Dimensions};
+use gltf::buffer::Source;
+use gltf::mesh::Mode;
+use gltf::{Document, Primitive, Semantic};
+
+use super::assemble::Assembler;
+use super::{Mesh, MeshError, ReadLimits};
+
+const FORMAT: &str = "glTF";
+const DRACO: &str = "KHR_draco_mesh_compression";
+
+fn malformed(message: impl Into<String>) -> MeshError {
+    MeshError::malformed(FORMAT, message)
+}
+
+fn unsupported(message: impl Into<String>) -> MeshError {
+    MeshError::Unsupported { format: FORMAT, message: message.into() }
+}
+
+/// Column-major 4x4 matrix (`m[column][row]`), as glTF stores them; f64 so that deep
+/// hierarchies do not accumulate rounding.
+type Mat4 = [[f64; 4]; 4];
+
+const IDENTITY: Mat4 =
+    [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+
+/// Reads glTF or GLB bytes; `base` is the directory external buffers are resolved against
+/// (`None`: external buffers are refused).
+pub(crate) fn read(
+    bytes: &[u8],
+    base: Option<&Path>,
+    limits: &ReadLimits,
+) -> Result<Mesh, MeshError> {
+    let (document, blob) = parse(bytes)?;
+    let draco_used = document.extensions_used().any(|e| e == DRACO);
+    let buffers = load_buffers(&document, blob, base, limits, bytes.len() as u64)?;
+    let parts = scene_parts(&document)?;
+
+    let is_surface = |p: &Part| {
+        matches!(p.primitive.mode(), Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan)
+    };
+    let is_points = |p: &Part| p.primitive.mode() == Mode::Points;
+    // Lines carry no surface, and points beside a surface are not part of it: read surfaces
+    // when there are any, else points.
+    let parts: Vec<&Part> = if parts.iter().any(is_surface) {
+        parts.iter().filter(|p| is_surface(p)).collect()
+    } else if parts.iter().any(is_points) {
+        parts.iter().filter(|p| is_points(p)).collect()
+    } else if parts.is_empty() {
+        Vec::new()
+    } else {
+        return Err(unsupported("the only primitives are lines, which have no surface"));
+    };
+    let with_normals = parts.iter().all(|p| p.primitive.get(&Semantic::Normals).is_some());
+
+    let mut asm = Assembler::new(FORMAT, limits);
+    let mut normals = Vec::new();
+    let ctx = Context { buffers: &buffers, draco_used };
+    for part in parts {
+        ctx.read_part(part, &mut asm, with_normals.then_some(&mut normals))?;
+    }
+    asm.finish((with_normals && !normals.is_empty()).then_some(normals))
+}
+
+/// The document, validated, and the GLB binary chunk if any.
+fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
+    // The crate subtracts the header size from the declared length without checking it.
+    if bytes.starts_with(b"glTF") {
+        let declared = bytes.get(8..12).and_then(|b| b.try_into().ok()).map(u32::from_le_bytes);
+        if declared.is_none_or(|n| n < 12) {
+            return Err(malformed("truncated GLB header"));
+        }
+    }
+    let gltf =
+        gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| malformed(e.to_string()))?;
+    let mut root = gltf.document.into_json();
+    // The crate refuses every required extension it does not implement; most (materials,
+    // textures, lights) do not touch geometry, and those that do are refused here by name.
+    if let Some(ext) = root.extensions_required.iter().find(|e| !appearance_only(e)) {
+        return Err(unsupported(format!("required extension {ext}")));
+    }
+    root.extensions_required.clear();
+    validate(&root)?;
+    Ok((Document::from_json_without_validation(root), gltf.blob))
+}
+
+/// The crate's validation (every index refers to something that exists, which the document
+/// accessors rely on), less two checks whose absence we handle: POSITION `min`/`max`, which
+/// many exporters omit and we never use, and an accessor without a buffer view, which is how
+/// Draco-compressed primitives look and is reported when the accessor is read.
+fn validate(root: &gltf_json::Root) -> Result<(), MeshError> {
+    use gltf_json::validation::{Error, Validate};
+    let mut problems = Vec::new();
+    root.validate(root, gltf_json::Path::new, &mut |path, error| {
+        let path = path();
+        let tolerated = matches!(error, Error::Missing)
+            && ["[\"POSITION\"].min", "[\"POSITION\"].max", "].bufferView"]
+                .iter()
+                .any(|end| path.as_str().ends_with(end));
+        if !tolerated {
+            problems.push(format!("{path}: {error}"));
+        }
+    });
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(malformed(format!("invalid glTF: {}", problems.join("; "))))
+    }
+}
+
+fn appearance_only(extension: &str) -> bool {
+    ["KHR_materials_", "KHR_texture_", "EXT_texture_", "MSFT_texture_"]
+        .iter()
+        .any(|prefix| extension.starts_with(prefix))
+        || extension == "KHR_lights_punctual"
+}
+
+fn load_buffers(
+    document: &Document,
+    mut blob: Option<Vec<u8>>,
+    base: Option<&Path>,
+    limits: &ReadLimits,
+    input_bytes: u64,
+) -> Result<Vec<Vec<u8>>, MeshError> {
+    let declared = document.buffers().map(|b| b.length() as u64).fold(0u64, u64::saturating_add);
+    limits.check_bytes(declared)?;
+    let mut total = input_bytes;
+    let mut buffers = Vec::new();
+    for buffer in document.buffers() {
+        let data = match buffer.source() {
+            Source::Bin => {
+                blob.take().ok_or_else(|| malformed("a buffer refers to a missing BIN chunk"))?
+            }
+            Source::Uri(uri) if uri.starts_with("data:") => {
+                // Decoded from the input itself, so bounded by its size.
+                gltf::buffer::Data::from_source(buffer.source(), None)
+                    .map_err(|e| malformed(e.to_string()))?
+                    .0
+            }
+            Source::Uri(uri) => {
+                let base = base.ok_or_else(|| {
+                    unsupported(format!(
+                        "external buffer {uri:?}: read the .gltf file from disk, or use .glb"
+                    ))
+                })?;
+                let data = read_external(uri, base, limits, total)?;
+                total += data.len() as u64;
+                data
+            }
+        };
+        if data.len() < buffer.length() {
+            return Err(malformed(format!(
+                "buffer {} declares {} bytes but has {}",
+                buffer.index(),
+                buffer.length(),
+                data.len()
+            )));
+        }
+        buffers.push(data);
+    }
+    Ok(buffers)
+}
+
+/// An external buffer file, resolved relative to the `.gltf` file and size-checked first.
+fn read_external(
+    uri: &str,
+    base: &Path,
+    limits: &ReadLimits,
+    so_far: u64,
+) -> Result<Vec<u8>, MeshError> {
+    let decoded =
+        urlencoding::decode(uri).map_err(|_| malformed(format!("bad buffer URI {uri:?}")))?;
+    let relative = Path::new(decoded.as_ref());
+    if decoded.contains(':') || relative.is_absolute() {
+        return Err(unsupported(format!("buffer URI {uri:?}: only relative paths are read")));
+    }
+    let path = base.join(relative);
+    let io = |source| MeshError::Io { path: path.clone(), source };
+    let size = std::fs::metadata(&path).map_err(io)?.len();
+    limits.check_bytes(so_far.saturating_add(size))?;
+    std::fs::read(&path).map_err(io)
+}
+
+/// A primitive placed in the scene.
+struct Part<'a> {
+    primitive: Primitive<'a>,
+    world: Mat4,
+}
+
+/// Every primitive of the scene, with its node's world transform. Each node of a scene may be
+/// reached once: a node hierarchy is a forest, and a cycle or shared child would otherwise
+/// loop forever or multiply geometry without bound.
+fn scene_parts(document: &Document) -> Result<Vec<Part<'_>>, MeshError> {
+    let scenes: Vec<_> = match document.default_scene() {
+        Some(scene) => vec![scene],
+        None => document.scenes().collect(),
+    };
+    let mut parts = Vec::new();
+    if scenes.is_empty() {
+        // No scene at all: every mesh as it is.
+        for mesh in document.meshes() {
+            parts.extend(mesh.primitives().map(|primitive| Part { primitive, world: IDENTITY }));
+        }
+        return Ok(parts);
+    }
+    for scene in scenes {
+        let mut visited = vec![false; document.nodes().len()];
+        let mut stack: Vec<_> = scene.nodes().map(|n| (n, IDENTITY)).collect();
+        stack.reverse();
+        while let Some((node, parent)) = stack.pop() {
+            let seen = visited.get_mut(node.index()).ok_or_else(|| malformed("bad node index"))?;
+            if std::mem::replace(seen, true) {
+                return Err(malformed(format!(
+                    "node {} is reached twice in a scene",
+                    node.index()
+                )));
+            }
+            let local = node.transform().matrix().map(|column| column.map(f64::from));
+            let world = mul(&parent, &local);
+            if let Some(mesh) = node.mesh() {
+                parts.extend(mesh.primitives().map(|primitive| Part { primitive, world }));
+            }
+            let children: Vec<_> = node.children().collect();
+            stack.extend(children.into_iter().rev().map(|child| (child, world)));
+        }
+    }
+    Ok(parts)
+}
+
+fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
+    let mut m = [[0.0; 4]; 4];
+    for (c, column) in m.iter_mut().enumerate() {
+        for (r, value) in column.iter_mut().enumerate() {
+            *value = (0..4).map(|k| a[k][r] * b[c][k]).sum();
+        }
+    }
+    m
+}
+
+fn transform_point(m: &Mat4, p: [f32; 3]) -> [f32; 3] {
+    let p = p.map(f64::from);
+    std::array::from_fn(|r| (m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r]) as f32)
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+/// The matrix that maps normals: the inverse transpose of the linear part, up to a positive
+/// factor (the cofactor matrix, whose columns are cross products of the linear part's, times
+/// the sign of the determinant), which the normalization after it removes.
+/// Returns the columns and the determinant's sign (negative: the transform mirrors).
+fn normal_matrix(m: &Mat4) -> ([[f64; 3]; 3], f64) {
+    let a: [[f64; 3]; 3] = std::array::from_fn(|c| [m[c][0], m[c][1], m[c][2]]);
+    let cof = [cross(a[1], a[2]), cross(a[2], a[0]), cross(a[0], a[1])];
+    let det: f64 = (0..3).map(|k| a[0][k] * cof[0][k]).sum();
+    let sign = if det < 0.0 { -1.0 } else { 1.0 };
+    (cof.map(|col| col.map(|x| x * sign)), sign)
+}
+
+fn transform_normal(cof: &[[f64; 3]; 3], n: [f32; 3]) -> [f32; 3] {
+    let n = n.map(f64::from);
+    let v: [f64; 3] =
+        std::array::from_fn(|r| cof[0][r] * n[0] + cof[1][r] * n[1] + cof[2][r] * n[2]);
+    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    if len > 0.0 && len.is_finite() { v.map(|x| (x / len) as f32) } else { [0.0; 3] }
+}
+
+/// An accessor's bytes, checked to hold all its elements.
+struct Strided<'b> {
+    data: &'b [u8],
+    stride: usize,
+    size: usize,
+    count: usize,
+}
+
+impl<'b> Strided<'b> {
+    fn element(&self, i: usize) -> Result<&'b [u8], MeshError> {
+        let start = i * self.stride;
+        self.data
+            .get(start..start + self.size)
+            .ok_or_else(|| malformed("accessor element out of range"))
+    }
+
+    fn vec3(&self, i: usize) -> Result<[f32; 3], MeshError> {
+        let b: [u8; 12] = self.element(i)?.try_into().map_err(|_| malformed("bad vec3 element"))?;
+        Ok(std::array::from_fn(|k| {
+            f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]])
+        }))
+    }
+
+    fn index(&self, i: usize) -> Result<u32, MeshError> {
+        Ok(match *self.element(i)? {
+            [a] => u32::from(a),
+            [a, b] => u32::from(u16::from_le_bytes([a, b])),
+            [a, b, c, d] => u32::from_le_bytes([a, b, c, d]),
+            _ => return Err(malformed("bad index size")),
+        })
+    }
+}
+
+struct Context<'b> {
+    buffers: &'b [Vec<u8>],
+    draco_used: bool,
+}
+
+impl<'b> Context<'b> {
+    fn accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'b>, MeshError> {
+        let i = accessor.index();
+        if accessor.sparse().is_some() {
+            return Err(unsupported(format!("sparse accessor {i} ({semantic})")));
+        }
+        let Some(view) = accessor.view() else {
+            return Err(if self.draco_used {
+                unsupported(format!(
+                    "Draco-compressed primitive ({semantic} accessor {i} has no data of its own)"
+                ))
+            } else {
+                unsupported(format!("{semantic} accessor {i} has no buffer view"))
+            });
+        };
+        let size = accessor.size();
+        let stride = view.stride().unwrap_or(size);
+        let count = accessor.count();
+        let buffer =
+            self.buffers.get(view.buffer().index()).ok_or_else(|| malformed("bad buffer index"))?;
+        let view_bytes = view
+            .offset()
+            .checked_add(view.length())
+            .and_then(|end| buffer.get(view.offset()..end))
+            .ok_or_else(|| {
+                malformed(format!("buffer view {} runs past its buffer", view.index()))
+            })?;
+        if count == 0 {
+            return Err(malformed(format!(
+                "accessor {i} ({semantic}) is empty; glTF requires count >= 1"
+            )));
+        }
+        let needed = (count - 1).checked_mul(stride).and_then(|b| b.checked_add(size));
+        let data = needed
+            .filter(|_| stride >= size && size > 0)
+            .and_then(|needed| {
+                view_bytes.get(accessor.offset()..accessor.offset().checked_add(needed)?)
+            })
+            .ok_or_else(|| {
+                malformed(format!("accessor {i} ({semantic}) runs past its buffer view"))
+            })?;
+        Ok(Strided { data, stride, size, count })
+    }
+
+    fn vec3_accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'b>, MeshError> {
+        if accessor.data_type() != DataType::F32 || accessor.dimensions() != Dimensions::Vec3 {
+            return Err(unsupported(format!(
+                "{semantic} stored as {:?} {:?}, not float VEC3",
+                accessor.dimensions(),
+                accessor.data_type()
+            )));
+        }
+        self.accessor(accessor, semantic)
+    }
+
+    fn read_part(
+        &self,
+        part: &Part,
+        asm: &mut Assembler,
+        normals: Option<&mut Vec<[f32; 3]>>,
+    ) -> Result<(), MeshError> {
+        let primitive = &part.primitive;
+        let Some(positions) = primitive.get(&Semantic::Positions) else {
+            return Err(malformed(format!("primitive {} has no POSITION", primitive.index())));
+        };
+        let positions = self.vec3_accessor(&positions, "POSITION")?;
+        let n = positions.count;
+        asm.check_limits(n as u64, 0)?;
+        let base = asm.vertices.len();
+        if u32::try_from(base + n).is_err() {
+            return Err(malformed("more vertices than 32-bit indices can address"));
+        }
+        let base = base as u32;
+        asm.reserve(n as u64, 0)?;
+        for i in 0..n {
+            asm.push_vertex(transform_point(&part.world, positions.vec3(i)?))?;
+        }
+        let (normal_matrix, winding) = normal_matrix(&part.world);
+        if let Some(normals) = normals {
+            let accessor =
+                primitive.get(&Semantic::Normals).ok_or_else(|| malformed("NORMAL vanished"))?;
+            let source = self.vec3_accessor(&accessor, "NORMAL")?;
+            if source.count != n {
+                return Err(malformed(format!("{} normals for {n} positions", source.count)));
+            }
+            normals.reserve(n);
+            for i in 0..n {
+                normals.push(transform_normal(&normal_matrix, source.vec3(i)?));
+            }
+        }
+        if primitive.mode() == Mode::Points {
+            return Ok(());
+        }
+
+        let indices = match primitive.indices() {
+            Some(accessor) => {
+                if accessor.dimensions() != Dimensions::Scalar
+                    || !matches!(accessor.data_type(), DataType::U8 | DataType::U16 | DataType::U32)
+                {
+                    return Err(malformed("indices must be unsigned integer scalars"));
+                }
+                let source = self.accessor(&accessor, "indices")?;
+                let mut indices = Vec::with_capacity(source.count);
+                for i in 0..source.count {
+                    let index = source.index(i)?;
+                    if index as usize >= n {
+                        return Err(malformed(format!("index {index} with {n} vertices")));
+                    }
+                    indices.push(index);
+                }
+                indices
+            }
+            None => (0..n as u32).collect(),
+        };
+        let triangles = triangles(primitive.mode(), &indices)?;
+        asm.check_limits(0, triangles.len() as u64)?;
+        for [a, b, c] in triangles {
+            // A mirroring transform turns the winding; swapping two corners restores it.
+            let t = if winding < 0.0 { [a, c, b] } else { [a, b, c] };
+            asm.push_triangle(t.map(|i| base + i))?;
+        }
+        Ok(())
+    }
+}
+
+/// The triangles of a triangle list, strip or fan, as the glTF specification defines them.
+fn triangles(mode: Mode, indices: &[u32]) -> Result<Vec<[u32; 3]>, MeshError> {
+    let v = indices;
+    let strip_or_fan = v.len().saturating_sub(2);
+    Ok(match mode {
+        Mode::Triangles => {
+            if !v.len().is_multiple_of(3) {
+                return Err(malformed(format!("{} indices do not make whole triangles", v.len())));
+            }
+            v.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect()
+        }
+        Mode::TriangleStrip => {
+            (0..strip_or_fan)
+                .map(|i| {
+                    if i % 2 == 0 { [v[i], v[i + 1], v[i + 2]] } else { [v[i], v[i + 2], v[i + 1]] }
+                })
+                .collect()
+        }
+        Mode::TriangleFan => (0..strip_or_fan).map(|i| [v[i + 1], v[i + 2], v[0]]).collect(),
+        _ => Vec::new(),
+    })
+}
