@@ -12,7 +12,10 @@ mod normalize;
 mod obj;
 mod ply;
 pub mod primitives;
+mod sample;
 mod stl;
+#[cfg(test)]
+pub(crate) mod test_shapes;
 mod text;
 pub mod transform;
 
@@ -22,6 +25,7 @@ pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file}
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
 pub use normalize::Normalization;
+pub use sample::sample_surface;
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
 ///
