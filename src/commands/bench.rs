@@ -5,7 +5,6 @@ use std::hint::black_box;
 use std::time::{Duration, Instant};
 
 use clap::Subcommand;
-use comfy_table::Table;
 use meshstream::mesh::{
     Format, ReadLimits, farthest_point_sampling, primitives, read_mesh, sample_surface, write_mesh,
 };
@@ -43,7 +42,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     // A dense, closed test surface: 512 x 256 UV sphere, about 262,000 faces.
     let dense = primitives::uv_sphere(1.0, 512, 256);
     let faces = dense.faces.len();
-    let mut table = Table::new();
+    let mut table = super::table();
     table.set_header(["measurement", "input", "time per run", "throughput"]);
 
     let limits = ReadLimits::default();

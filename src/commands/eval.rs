@@ -2,7 +2,6 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use comfy_table::Table;
 use meshstream::mesh::mesh_files_in;
 use meshstream::metrics::{EvalRecord, EvalSummary, MetricOptions, mesh_distances, summarize};
 use serde::Serialize;
@@ -115,7 +114,7 @@ fn evaluate_pair(
 }
 
 fn print_tables(rows: &[Row], s: &EvalSummary) {
-    let mut table = Table::new();
+    let mut table = super::table();
     table.set_header(["mesh", "CD", "HD", "failure"]);
     let fmt = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
     for r in rows {
@@ -127,7 +126,7 @@ fn print_tables(rows: &[Row], s: &EvalSummary) {
         ]);
     }
     println!("{table}");
-    let mut sum = Table::new();
+    let mut sum = super::table();
     sum.set_header(["set", "CD", "HD"]);
     sum.add_row(["mean".to_string(), fmt(s.chamfer_mean), fmt(s.hausdorff_mean)]);
     sum.add_row(["median".to_string(), fmt(s.chamfer_median), fmt(s.hausdorff_median)]);

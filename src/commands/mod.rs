@@ -17,6 +17,13 @@ pub fn load_mesh(path: &Path) -> anyhow::Result<Mesh> {
         .with_context(|| format!("reading {}", path.display()))
 }
 
+/// A table printed as Markdown, so figures paste straight into notes and model cards.
+pub fn table() -> comfy_table::Table {
+    let mut table = comfy_table::Table::new();
+    table.load_style(comfy_table::presets::ASCII_MARKDOWN);
+    table
+}
+
 /// A file's name without its folder, for tables.
 pub fn display_name(path: &Path) -> String {
     path.file_name()

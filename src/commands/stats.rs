@@ -144,7 +144,7 @@ fn summarize(rows: &[MeshStats], failed: Vec<String>) -> Summary {
 }
 
 fn rows_table(rows: &[MeshStats]) -> Table {
-    let mut table = Table::new();
+    let mut table = super::table();
     table.set_header([
         "mesh",
         "vertices",
@@ -170,7 +170,7 @@ fn rows_table(rows: &[MeshStats]) -> Table {
 
 fn print_summary(s: &Summary) {
     let opt = |v: Option<usize>| v.map_or_else(|| "-".to_string(), |v| v.to_string());
-    let mut table = Table::new();
+    let mut table = super::table();
     table.set_header(["set", "value"]);
     table.add_row(["meshes".to_string(), s.meshes.to_string()]);
     table.add_row(["unreadable".to_string(), s.failures.to_string()]);
