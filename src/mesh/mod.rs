@@ -14,8 +14,6 @@ mod ply;
 pub mod primitives;
 mod sample;
 mod stl;
-#[cfg(test)]
-pub(crate) mod test_shapes;
 mod text;
 pub mod transform;
 

@@ -49,11 +49,11 @@ fn point_in_triangle([a, b, c]: [[f32; 3]; 3], rng: &mut impl RngCore) -> [f32; 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::test_shapes::cube;
+    use crate::mesh::primitives::cuboid;
 
     #[test]
     fn same_seed_same_points_other_seed_other_points() {
-        let m = cube(-1.0, 1.0);
+        let m = cuboid([2.0; 3]);
         let a = sample_surface(&m, 500, 7).unwrap();
         assert_eq!(a, sample_surface(&m, 500, 7).unwrap());
         assert_ne!(a.vertices, sample_surface(&m, 500, 8).unwrap().vertices);
@@ -63,7 +63,7 @@ mod tests {
 
     #[test]
     fn points_lie_on_the_cube_with_their_faces_normals() {
-        let m = cube(-1.0, 1.0);
+        let m = cuboid([2.0; 3]);
         let s = sample_surface(&m, 5000, 1).unwrap();
         let normals = s.normals.as_ref().unwrap();
         for (p, n) in s.vertices.iter().zip(normals) {
@@ -133,7 +133,10 @@ mod tests {
         let bad_index = Mesh::new(vec![[0.0; 3]], vec![[0, 1, 2]]);
         assert!(sample_surface(&bad_index, 10, 0).is_err());
         assert_eq!(
-            sample_surface(&crate::mesh::test_shapes::cube(0.0, 1.0), 0, 0).unwrap().vertices.len(),
+            sample_surface(&crate::mesh::primitives::cuboid([1.0; 3]), 0, 0)
+                .unwrap()
+                .vertices
+                .len(),
             0
         );
     }

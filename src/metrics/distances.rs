@@ -113,7 +113,7 @@ pub fn mesh_distances(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::test_shapes::{cube, uv_sphere};
+    use crate::mesh::primitives::{cuboid, uv_sphere};
 
     const N: usize = 50_000;
 
@@ -179,7 +179,7 @@ mod tests {
         //   edge: each 2 x int_0^s t dt = s^2, together 4 s^2.
         // By the mirror x -> -x the mean from B to A is the same, so CD = 2 x (sum) / 24.
         // HD: the x = -1 face is s from B everywhere and nothing is farther: HD = s.
-        let gt = cube(0.0, 1.0);
+        let gt = cuboid([1.0; 3]).translated([0.5; 3]);
         let pred = moved(&gt, [0.1, 0.0, 0.0]);
         let s = 0.1 / Normalization::fit(&gt.vertices).unwrap().half_extent;
         let integral =
@@ -206,7 +206,7 @@ mod tests {
         // CD = 2 (R2 - R1), HD = R2 - R1, scaled by the GT frame (1 / its half extent). The fine
         // tessellation changes the gap by (R2 - R1)(1 - cos(pi / 128)), below 1e-4.
         let (r1, r2) = (1.0f32, 1.25f32);
-        let gt = uv_sphere(r1, 64, 128);
+        let gt = uv_sphere(r1, 128, 64);
         let pred = scaled(&gt, r2 / r1);
         let frame = Normalization::fit(&gt.vertices).unwrap();
         let gap = f64::from(r2 - r1) / frame.half_extent;
@@ -226,7 +226,7 @@ mod tests {
     #[test]
     fn identical_meshes_score_the_sampling_floor() {
         // DESIGN.md: CD 0.022, HD 0.046 for the cube [-1, 1]^3 at N = 50,000.
-        let gt = cube(-1.0, 1.0);
+        let gt = cuboid([2.0; 3]);
         let floor = chamfer_floor(24.0); // 0.0219
         let d = mesh_distances(&gt, &gt, &opts()).unwrap();
         assert!(d.chamfer > 0.8 * floor && d.chamfer < 1.25 * floor, "{d:?} vs {floor}");
@@ -239,7 +239,7 @@ mod tests {
 
     #[test]
     fn a_point_cloud_ground_truth_is_used_as_it_is() {
-        let gt = cube(-1.0, 1.0);
+        let gt = cuboid([2.0; 3]);
         let cloud = sample_surface(&gt, N, 9).unwrap();
         let d = mesh_distances(&gt, &cloud, &opts()).unwrap();
         assert!(d.chamfer < 1.25 * chamfer_floor(24.0), "{d:?}");
@@ -247,7 +247,7 @@ mod tests {
 
     #[test]
     fn unusable_inputs_are_typed_errors() {
-        let gt = cube(-1.0, 1.0);
+        let gt = cuboid([2.0; 3]);
         let points_only = Mesh::new(gt.vertices.clone(), vec![]);
         let err = |pred: &Mesh, gt: &Mesh, o: MetricOptions| mesh_distances(pred, gt, &o).err();
         assert!(matches!(err(&points_only, &gt, opts()), Some(MetricsError::EmptyPrediction)));
@@ -275,13 +275,13 @@ mod tests {
     #[test]
     #[ignore = "timing, run in release"]
     fn time_mesh_distances_at_50k() {
-        let gt = uv_sphere(1.0, 64, 128);
+        let gt = uv_sphere(1.0, 128, 64);
         let pred = scaled(&gt, 1.1);
         let start = std::time::Instant::now();
         let d = mesh_distances(&pred, &gt, &MetricOptions::default()).unwrap();
         let elapsed = start.elapsed();
         println!("mesh_distances, {} faces each, N = 50,000: {elapsed:?} ({d:?})", gt.faces.len());
-        let cube = cube(-1.0, 1.0);
+        let cube = cuboid([2.0; 3]);
         let d = mesh_distances(&cube, &cube, &MetricOptions::default()).unwrap();
         println!("cube [-1, 1]^3 against itself, N = 50,000: {d:?}");
     }

@@ -90,10 +90,10 @@ fn manifest_files(manifest: &Path, split: &str) -> Result<Vec<PathBuf>, TrainErr
     let mut files = Vec::new();
     for row in reader.records() {
         let row = row.map_err(|e| bad(e.to_string()))?;
-        if row.get(split_col) == Some(split) {
-            if let Some(file) = row.get(file_col) {
-                files.push(dir.join(file));
-            }
+        if row.get(split_col) == Some(split)
+            && let Some(file) = row.get(file_col)
+        {
+            files.push(dir.join(file));
         }
     }
     Ok(files)
