@@ -111,7 +111,7 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
-    use crate::mesh::triangle_normal;
+    use crate::mesh::{triangle_area, triangle_normal};
 
     /// Corners of [-1, 1]^3 at x, y or z = +1 (and the origin corner), outward windings.
     /// Quantized at 128 levels: P0 = (0,0,0), P1 = (127,0,0), P2 = (0,127,0), P3 = (0,0,127).
@@ -336,20 +336,23 @@ mod tests {
                 k
             };
             let mut input_normals: HashMap<[[u16; 3]; 3], Vec<[f32; 3]>> = HashMap::new();
+            // Zero-area (collinear) faces have no direction: their "normal" is rounding noise
+            // blown up to unit length, so they are left out by area, not by normal length.
+            let has_area = |t: [[f32; 3]; 3]| triangle_area(t) > 1e-6;
             for f in &m.faces {
                 let t = m.triangle(f);
-                input_normals.entry(key_of(t)).or_default().push(triangle_normal(t));
+                if has_area(t) {
+                    input_normals.entry(key_of(t)).or_default().push(triangle_normal(t));
+                }
             }
             for f in &out.faces {
                 let t = out.triangle(f);
+                let Some(oriented) = input_normals.get(&key_of(t)) else { continue };
+                // A face whose input had both orientations keeps one of them; skip it.
+                let one_way = oriented.windows(2).all(|w| dot(w[0], w[1]) > 0.0);
                 let n_out = triangle_normal(t);
-                let normals = &input_normals[&key_of(t)];
-                // A face whose input had both orientations keeps one of them; skip it, and
-                // skip zero-area (collinear) faces, which have no direction.
-                let oriented: Vec<_> = normals.iter().filter(|n| dot(**n, **n) > 0.5).collect();
-                let one_way = oriented.windows(2).all(|w| dot(*w[0], *w[1]) > 0.0);
-                if dot(n_out, n_out) > 0.5 && !oriented.is_empty() && one_way {
-                    prop_assert!(dot(n_out, *oriented[0]) > 0.99, "{n_out:?} vs {:?}", oriented[0]);
+                if one_way {
+                    prop_assert!(dot(n_out, oriented[0]) > 0.99, "{n_out:?} vs {:?}", oriented[0]);
                 }
             }
         }
