@@ -1,1 +1,35 @@
-//! placeholder, filled by its issue
+//! The FACE model in candle: shape encoder, autoregressive face decoder with per-sequence
+//! caches, CausalMLP head, generation with constraints, the per-coordinate baseline, and
+//! checkpoints.
+//!
+//! The model is stateless: a [`SequenceState`] (decoder caches and faces so far) belongs to the
+//! caller, and [`FaceModel::step`] advances any set of sequences, of any lengths, in one batch.
+
+mod attention;
+mod batch;
+mod cache;
+pub mod checkpoint;
+mod config;
+mod decoder;
+mod device;
+mod embedding;
+mod encoder;
+mod error;
+mod face;
+mod fourier;
+mod head;
+#[cfg(test)]
+mod testing;
+
+pub use batch::{TrainBatch, TrainExample};
+pub use cache::{DecoderCache, KV_CHUNK};
+pub use config::{Bottleneck, COORDS_PER_FACE, FaceConfig, StackConfig};
+pub use device::parse_device;
+pub use encoder::EncoderOutput;
+pub use error::ModelError;
+pub use face::{FaceModel, SequenceState, TrainLoss};
+
+/// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
+pub type FaceToken = [u16; 9];
+
+pub type Result<T, E = ModelError> = std::result::Result<T, E>;
