@@ -10,6 +10,7 @@ mod batch;
 mod cache;
 pub mod checkpoint;
 mod config;
+mod constraints;
 mod decoder;
 mod device;
 mod embedding;
@@ -17,17 +18,24 @@ mod encoder;
 mod error;
 mod face;
 mod fourier;
+mod generate;
 mod head;
+mod sampling;
 #[cfg(test)]
 mod testing;
 
 pub use batch::{TrainBatch, TrainExample};
 pub use cache::{DecoderCache, KV_CHUNK};
 pub use config::{Bottleneck, COORDS_PER_FACE, FaceConfig, StackConfig};
+pub use constraints::{allowed_values, completion_exists, is_valid_next};
 pub use device::parse_device;
 pub use encoder::EncoderOutput;
 pub use error::ModelError;
 pub use face::{FaceModel, SequenceState, TrainLoss};
+pub use generate::{
+    FaceStream, FinishReason, GenerateOptions, Generation, StepEvent, generate, step_generations,
+};
+pub use sampling::{Sampler, SamplingParams};
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
 pub type FaceToken = [u16; 9];
