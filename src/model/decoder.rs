@@ -61,10 +61,6 @@ impl DecoderStack {
         })
     }
 
-    pub fn width(&self) -> usize {
-        self.width
-    }
-
     pub fn max_positions(&self) -> usize {
         self.rope.max_positions()
     }

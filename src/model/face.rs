@@ -2,7 +2,7 @@
 //! stateless API the engine drives (encode -> start_sequence -> step / head) and the
 //! teacher-forced path training uses.
 
-use candle_core::{D, DType, Device, Tensor};
+use candle_core::{D, Device, Tensor};
 use candle_nn::{Init, VarBuilder};
 
 use super::cache::DecoderCache;
@@ -106,10 +106,6 @@ impl FaceModel {
 
     pub fn device(&self) -> &Device {
         self.start.device()
-    }
-
-    pub(crate) fn stack(&self) -> &DecoderStack {
-        &self.stack
     }
 
     /// Latent sets C (B, K, latent_dim) of point clouds: points, normals (B, M, 3) f32 and the
@@ -247,17 +243,13 @@ impl FaceModel {
     }
 }
 
-/// Row-wise argmax of a (B, C) logits tensor, for tests and greedy baselines.
-pub(crate) fn argmax_rows(logits: &Tensor) -> Result<Vec<u32>> {
-    Ok(logits.argmax(D::Minus1)?.to_dtype(DType::U32)?.to_vec1::<u32>()?)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::model::testing::{
         faces_tensor, max_abs_diff, random_faces, random_latents, random_model,
     };
+    use candle_core::DType;
 
     /// Hidden state and all 9 teacher-forced logits at `pos` of one row, from the cached path.
     fn cached_outputs(

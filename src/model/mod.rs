@@ -6,6 +6,7 @@
 //! caller, and [`FaceModel::step`] advances any set of sequences, of any lengths, in one batch.
 
 mod attention;
+mod baseline;
 mod batch;
 mod cache;
 pub mod checkpoint;
@@ -24,6 +25,7 @@ mod sampling;
 #[cfg(test)]
 mod testing;
 
+pub use baseline::{BaselineState, CoordinateBaseline};
 pub use batch::{TrainBatch, TrainExample};
 pub use cache::{DecoderCache, KV_CHUNK};
 pub use config::{Bottleneck, COORDS_PER_FACE, FaceConfig, StackConfig};
