@@ -1,0 +1,3 @@
+//! Subcommands of the `meshstream` binary.
+
+pub mod bench_decode;
