@@ -111,7 +111,7 @@ impl TrainBatch {
             .collect();
         let weights = Tensor::from_vec(weights, (b, n), dev)?;
         for (j, l) in logits.iter().enumerate().skip(1) {
-            let targets = self.faces.narrow(2, j, 1)?.squeeze(2)?;
+            let targets = self.faces.narrow(2, j, 1)?.squeeze(2)?.contiguous()?;
             total = (total + masked_nll(l, &targets, &weights)?)?;
         }
         Ok((total / positions as f64)?)
@@ -121,6 +121,49 @@ impl TrainBatch {
 /// Sum over positions of weight * -log p(target). logits (B, T, C), targets (B, T) u32.
 fn masked_nll(logits: &Tensor, targets: &Tensor, weights: &Tensor) -> Result<Tensor> {
     let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
-    let picked = logp.gather(&targets.to_dtype(DType::U32)?.unsqueeze(D::Minus1)?, D::Minus1)?;
+    let targets = targets.to_dtype(DType::U32)?.unsqueeze(D::Minus1)?.contiguous()?;
+    let picked = logp.contiguous()?.gather(&targets, D::Minus1)?;
     Ok((picked.squeeze(D::Minus1)? * weights)?.sum_all()?.neg()?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FaceConfig;
+    use crate::model::testing::{random_faces, random_model};
+
+    #[test]
+    fn padded_loss_is_the_position_weighted_mean_of_row_losses() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let pts: Vec<[f32; 3]> =
+            (0..cfg.num_points).map(|i| [(i as f32).sin(), (i as f32).cos(), 0.5]).collect();
+        let queries: Vec<u32> = (0..cfg.num_latents as u32).collect();
+        let faces = [random_faces(&cfg, 5, 1), random_faces(&cfg, 2, 2)];
+        let example =
+            |f| TrainExample { points: &pts, normals: &pts, query_indices: &queries, faces: f };
+        let dev = Device::Cpu;
+        let loss = |ex: &[TrainExample<'_>]| {
+            let batch = TrainBatch::new(ex, &dev).unwrap();
+            model.loss(&batch).unwrap().total.to_scalar::<f32>().unwrap()
+        };
+        let a = loss(&[example(&faces[0])]);
+        let b = loss(&[example(&faces[1])]);
+        let both = loss(&[example(&faces[0]), example(&faces[1])]);
+        let expect = (a * 6.0 + b * 3.0) / 9.0;
+        assert!((both - expect).abs() < 1e-4, "{both} vs {expect}");
+        // Roughly uniform predictions at initialization: about ln(Q) per coordinate.
+        assert!(a > 0.0 && a < 9.0 * (cfg.quant_levels as f32 + 1.0).ln() * 2.0, "{a}");
+    }
+
+    #[test]
+    fn mismatched_examples_are_rejected() {
+        let pts = vec![[0.0f32; 3]; 4];
+        let q = vec![0u32; 2];
+        let a = TrainExample { points: &pts, normals: &pts, query_indices: &q, faces: &[] };
+        let b =
+            TrainExample { points: &pts[..3], normals: &pts[..3], query_indices: &q, faces: &[] };
+        assert!(TrainBatch::new(&[a.clone(), b], &Device::Cpu).is_err());
+        assert!(TrainBatch::new(&[], &Device::Cpu).is_err());
+    }
 }
