@@ -4,8 +4,9 @@
 //! layer over Q coordinate classes plus end of mesh) differ.
 
 use candle_core::{D, DType, Device, Tensor};
-use candle_nn::{Embedding, Init, Linear, VarBuilder};
+use candle_nn::{Embedding, Init, VarBuilder};
 
+use super::attention::Dense;
 use super::cache::DecoderCache;
 use super::config::{COORDS_PER_FACE, FaceConfig};
 use super::decoder::DecoderStack;
@@ -33,7 +34,7 @@ pub struct CoordinateBaseline {
     embed: Embedding,
     start: Tensor,
     stack: DecoderStack,
-    head: Linear,
+    head: Dense,
     quant_levels: usize,
 }
 
@@ -45,7 +46,7 @@ impl CoordinateBaseline {
             embed: candle_nn::embedding(COORDS_PER_FACE * q, d, vb.pp("token_embed"))?,
             start: vb.get_with_hints(d, "start", Init::Randn { mean: 0.0, stdev: 0.02 })?,
             stack: DecoderStack::new(cfg, COORDS_PER_FACE * cfg.max_faces + 1, vb.pp("decoder"))?,
-            head: candle_nn::linear(d, q + 1, vb.pp("head"))?,
+            head: Dense::new(d, q + 1, true, vb.pp("head"))?,
             quant_levels: q,
         })
     }
@@ -79,7 +80,7 @@ impl CoordinateBaseline {
             x = fresh.where_cond(&self.start.unsqueeze(0)?.broadcast_as(x.shape())?, &x)?;
         }
         let mut caches: Vec<&mut DecoderCache> = states.iter_mut().map(|s| &mut s.cache).collect();
-        Ok(self.stack.step(&x.unsqueeze(1)?, &mut caches)?.apply(&self.head)?)
+        self.head.forward(&self.stack.step(&x.unsqueeze(1)?, &mut caches)?)
     }
 
     /// Greedy decoding without end of mesh, for benchmarks: one step, then each sequence's most
@@ -115,7 +116,7 @@ impl CoordinateBaseline {
         let d = self.start.dim(0)?;
         let start = self.start.reshape((1, 1, d))?.broadcast_as((b, 1, d))?;
         let x = Tensor::cat(&[&start, &x], 1)?;
-        Ok(self.stack.forward(&x, latents)?.apply(&self.head)?)
+        self.head.forward(&self.stack.forward(&x, latents)?)
     }
 }
 

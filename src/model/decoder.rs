@@ -3,10 +3,10 @@
 //! embedding and the output head differ between the two models.
 
 use candle_core::Tensor;
+use candle_nn::VarBuilder;
 use candle_nn::kv_cache::KvCache;
-use candle_nn::{Linear, VarBuilder};
 
-use super::attention::{CrossAttention, Mlp, Norm, Rope, SelfAttention, causal_mask};
+use super::attention::{CrossAttention, Dense, Mlp, Norm, Rope, SelfAttention, causal_mask};
 use super::cache::DecoderCache;
 use super::config::FaceConfig;
 use super::{ModelError, Result};
@@ -37,7 +37,7 @@ impl DecoderLayer {
 
 #[derive(Debug, Clone)]
 pub struct DecoderStack {
-    latent_up: Linear,
+    latent_up: Dense,
     layers: Vec<DecoderLayer>,
     norm: Norm,
     rope: Rope,
@@ -50,7 +50,7 @@ impl DecoderStack {
     pub fn new(cfg: &FaceConfig, max_positions: usize, vb: VarBuilder) -> Result<Self> {
         let d = &cfg.decoder;
         Ok(Self {
-            latent_up: candle_nn::linear(cfg.latent_dim, d.width, vb.pp("latent_up"))?,
+            latent_up: Dense::new(cfg.latent_dim, d.width, true, vb.pp("latent_up"))?,
             layers: (0..d.layers)
                 .map(|i| DecoderLayer::new(cfg, vb.pp(format!("layers.{i}"))))
                 .collect::<Result<_>>()?,
@@ -85,7 +85,7 @@ impl DecoderStack {
                 latents.dims()
             )));
         }
-        let memory = latents.apply(&self.latent_up)?;
+        let memory = self.latent_up.forward(latents)?;
         let cross = self
             .layers
             .iter()
@@ -116,7 +116,7 @@ impl DecoderStack {
                 limit: self.max_positions(),
             });
         }
-        let memory = latents.apply(&self.latent_up)?;
+        let memory = self.latent_up.forward(latents)?;
         let mask = causal_mask(t, x.device())?;
         let mut x = x.clone();
         for l in &self.layers {

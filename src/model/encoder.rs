@@ -3,9 +3,9 @@
 //! set C (K x latent_dim).
 
 use candle_core::{DType, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
-use super::attention::{CrossAttention, Mlp, Norm, SelfAttention};
+use super::attention::{CrossAttention, Dense, Mlp, Norm, SelfAttention};
 use super::config::{Bottleneck, FaceConfig};
 use super::fourier::FourierFeatures;
 use super::{ModelError, Result};
@@ -100,11 +100,11 @@ impl EncoderOutput {
 #[derive(Debug, Clone)]
 pub struct ShapeEncoder {
     fourier: FourierFeatures,
-    point_embed: Linear,
+    point_embed: Dense,
     query_block: QueryBlock,
     layers: Vec<EncoderBlock>,
     norm: Norm,
-    bottleneck: Linear,
+    bottleneck: Dense,
     kind: Bottleneck,
     latent_dim: usize,
 }
@@ -118,13 +118,13 @@ impl ShapeEncoder {
         };
         Ok(Self {
             fourier: FourierFeatures::new(cfg.fourier_frequencies, vb.device())?,
-            point_embed: candle_nn::linear(cfg.fourier_width(), e.width, vb.pp("point_embed"))?,
+            point_embed: Dense::new(cfg.fourier_width(), e.width, true, vb.pp("point_embed"))?,
             query_block: QueryBlock::new(cfg, vb.pp("query_block"))?,
             layers: (0..e.layers)
                 .map(|i| EncoderBlock::new(cfg, vb.pp(format!("layers.{i}"))))
                 .collect::<Result<_>>()?,
             norm: Norm::new(e.width, cfg.norm_eps, vb.pp("norm"))?,
-            bottleneck: candle_nn::linear(e.width, out, vb.pp("bottleneck"))?,
+            bottleneck: Dense::new(e.width, out, true, vb.pp("bottleneck"))?,
             kind: cfg.bottleneck,
             latent_dim: cfg.latent_dim,
         })
@@ -161,7 +161,7 @@ impl ShapeEncoder {
             )));
         }
         let input = Tensor::cat(&[points, normals], 2)?;
-        let embedded = self.fourier.forward(&input)?.apply(&self.point_embed)?;
+        let embedded = self.point_embed.forward(&self.fourier.forward(&input)?)?;
         // Gather the queries from the flattened batch: row r's index i is r * M + i.
         let offsets = (Tensor::arange(0u32, b as u32, points.device())? * m as f64)?
             .to_dtype(DType::U32)?
@@ -174,7 +174,7 @@ impl ShapeEncoder {
         for layer in &self.layers {
             x = layer.forward(&x)?;
         }
-        let z = self.norm.forward(&x)?.apply(&self.bottleneck)?;
+        let z = self.bottleneck.forward(&self.norm.forward(&x)?)?;
         Ok(match self.kind {
             Bottleneck::Linear => EncoderOutput { mean: z, logvar: None },
             Bottleneck::Kl { .. } => EncoderOutput {
