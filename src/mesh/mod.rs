@@ -3,10 +3,14 @@
 mod error;
 mod fps;
 mod normalize;
+mod sample;
+#[cfg(test)]
+pub(crate) mod test_shapes;
 
 pub use error::MeshError;
 pub use fps::farthest_point_sampling;
 pub use normalize::Normalization;
+pub use sample::sample_surface;
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
 ///
