@@ -63,6 +63,9 @@ pub struct FaceConfig {
 /// Coordinates per face: (z0 y0 x0 z1 y1 x1 z2 y2 x2).
 pub const COORDS_PER_FACE: usize = 9;
 
+/// The largest Q a config may ask for.
+pub const MAX_QUANT_LEVELS: usize = 4096;
+
 impl FaceConfig {
     /// The CPU default: about 7M parameters, sized for training on two cores.
     pub fn tiny() -> Self {
@@ -164,8 +167,12 @@ impl FaceConfig {
     /// clearly instead of deep inside a matmul.
     pub fn validate(&self) -> Result<(), ModelError> {
         let bad = |m: String| Err(ModelError::InvalidConfig(m));
-        if !(2..=65_536).contains(&self.quant_levels) {
-            return bad(format!("quant_levels {} not in 2..=65536", self.quant_levels));
+        // Tokens are u16, and the constraint masks walk all Q values per coordinate.
+        if !(2..=MAX_QUANT_LEVELS).contains(&self.quant_levels) {
+            return bad(format!(
+                "quant_levels {} not in 2..={MAX_QUANT_LEVELS}",
+                self.quant_levels
+            ));
         }
         for (name, v) in [
             ("max_faces", self.max_faces),

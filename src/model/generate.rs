@@ -135,9 +135,8 @@ pub fn step_generations(model: &FaceModel, gens: &mut [&mut Generation]) -> Resu
                 continue;
             }
             let g = &mut *gens[i];
-            let prev = g.state.faces().last();
             if g.options.constrained {
-                allowed_values(&faces[row][..j], prev, q, &mut allowed);
+                allowed_values(&faces[row][..j], g.state.faces(), q, &mut allowed);
             } else {
                 allowed.clear();
                 allowed.resize(q, true);
@@ -146,7 +145,7 @@ pub fn step_generations(model: &FaceModel, gens: &mut [&mut Generation]) -> Resu
             match g.sampler.pick(&logits[row], |c| if c == q { eos_ok } else { allowed[c] }) {
                 Some(c) if c == q => ended[row] = Some(FinishReason::EndOfMesh),
                 Some(c) => faces[row][j] = c as u16,
-                // Only at coordinate 0 (the mask is exact); the sequence cannot continue.
+                // No face can follow the sequence (see `constraints`): it ends here.
                 None => ended[row] = Some(FinishReason::DeadEnd),
             }
         }
@@ -228,6 +227,7 @@ mod tests {
     use crate::model::FaceConfig;
     use crate::model::constraints::is_valid_next;
     use crate::model::testing::{random_latents, random_model};
+    use crate::tokenize::is_canonical_sequence;
     use proptest::prelude::*;
 
     proptest! {
@@ -253,9 +253,9 @@ mod tests {
             };
             let (faces, reason) = generate(&model, &latents, options, |_| ControlFlow::Continue(())).unwrap();
             for (i, f) in faces.iter().enumerate() {
-                let prev = i.checked_sub(1).map(|p| &faces[p]);
-                prop_assert!(is_valid_next(f, prev, q), "face {i} {f:?} after {prev:?}");
+                prop_assert!(is_valid_next(f, &faces[..i], q), "face {i} {f:?}");
             }
+            prop_assert!(is_canonical_sequence(&faces));
             prop_assert!(faces.len() == 30 || reason == FinishReason::DeadEnd);
         }
     }
