@@ -119,6 +119,13 @@ impl FaceModel {
         Ok(self.encoder.forward(points, normals, query_indices)?.mean)
     }
 
+    /// The latent set (1, K, latent_dim) of one point cloud with normals, in the normalized
+    /// frame.
+    pub fn encode_point_cloud(&self, cloud: &crate::mesh::Mesh) -> Result<Tensor> {
+        let input = super::PointCloudInput::new(cloud, self.cfg.num_latents, self.device())?;
+        self.encode(&input.points, &input.normals, &input.query_indices)
+    }
+
     /// The encoder's full output (mean and log-variance), for training.
     pub fn encode_train(
         &self,

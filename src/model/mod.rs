@@ -16,11 +16,14 @@ mod decoder;
 mod device;
 mod embedding;
 mod encoder;
+#[cfg(test)]
+mod end_to_end;
 mod error;
 mod face;
 mod fourier;
 mod generate;
 mod head;
+mod input;
 mod sampling;
 #[cfg(test)]
 mod testing;
@@ -37,6 +40,7 @@ pub use face::{FaceModel, SequenceState, TrainLoss};
 pub use generate::{
     FaceStream, FinishReason, GenerateOptions, Generation, StepEvent, generate, step_generations,
 };
+pub use input::PointCloudInput;
 pub use sampling::{Sampler, SamplingParams};
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
