@@ -200,16 +200,16 @@ impl FaceConfig {
                 ));
             }
         }
-        if self.decoder.head_dim() % 2 != 0 {
+        if !self.decoder.head_dim().is_multiple_of(2) {
             return bad(format!(
                 "decoder head dim {} must be even for RoPE",
                 self.decoder.head_dim()
             ));
         }
-        if let Bottleneck::Kl { weight } = self.bottleneck {
-            if !(weight.is_finite() && weight >= 0.0) {
-                return bad(format!("KL weight {weight} must be finite and >= 0"));
-            }
+        if let Bottleneck::Kl { weight } = self.bottleneck
+            && !(weight.is_finite() && weight >= 0.0)
+        {
+            return bad(format!("KL weight {weight} must be finite and >= 0"));
         }
         if !(self.rope_theta.is_finite() && self.rope_theta > 0.0) {
             return bad(format!("rope_theta {} must be positive", self.rope_theta));

@@ -91,8 +91,8 @@ pub fn completion_exists(prefix: &[u16], earlier: &[FaceToken], q: usize) -> boo
             // At v1's last coordinate every value is tried: the exact check there also
             // weighs the earlier faces.
             let mut base = prefix.to_vec();
-            for k in prefix.len()..6 {
-                let above = usize::from(prev[k]) + 1;
+            for (k, &p) in prev.iter().enumerate().take(6).skip(prefix.len()) {
+                let above = usize::from(p) + 1;
                 let tries = match k {
                     0..3 => above..(above + 1).min(q),
                     3 | 4 => (q - 1).max(above)..q,
@@ -106,7 +106,7 @@ pub fn completion_exists(prefix: &[u16], earlier: &[FaceToken], q: usize) -> boo
                         return true;
                     }
                 }
-                base.push(prev[k]);
+                base.push(p);
             }
             last_vertex_exists(&base, earlier, q64)
         }

@@ -39,10 +39,10 @@ impl SamplingParams {
         if self.top_k == Some(0) {
             return Err(ModelError::bad_input("top_k must be at least 1"));
         }
-        if let Some(p) = self.top_p {
-            if !(p > 0.0 && p <= 1.0) {
-                return Err(ModelError::bad_input(format!("top_p {p} must be in (0, 1]")));
-            }
+        if let Some(p) = self.top_p
+            && !(p > 0.0 && p <= 1.0)
+        {
+            return Err(ModelError::bad_input(format!("top_p {p} must be in (0, 1]")));
         }
         Ok(())
     }
