@@ -9,6 +9,7 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::kv_cache::KvCache;
 use candle_nn::{Init, Linear, VarBuilder};
 
+use super::ragged::attend_rows;
 use super::{ModelError, Result};
 
 fn tracks(xs: &[&Tensor]) -> bool {
@@ -268,14 +269,15 @@ impl SelfAttention {
         let (q, k, v) = self.project(x)?;
         let q = rope.apply_rows(&q, positions)?;
         let k = rope.apply_rows(&k, positions)?;
-        let mut outs = Vec::with_capacity(caches.len());
-        for (r, cache) in caches.iter_mut().enumerate() {
-            // Detached: a cache must never hold on to an autograd graph.
-            let (kc, vc) =
-                cache.append(&k.narrow(0, r, 1)?.detach(), &v.narrow(0, r, 1)?.detach())?;
-            outs.push(attend(&q.narrow(0, r, 1)?, &kc, &vc, None)?);
-        }
-        self.out.forward(&merge_heads(&Tensor::cat(&outs, 0)?)?)
+        let kv = caches
+            .iter_mut()
+            .enumerate()
+            .map(|(r, cache)| {
+                // Detached: a cache must never hold on to an autograd graph.
+                Ok(cache.append(&k.narrow(0, r, 1)?.detach(), &v.narrow(0, r, 1)?.detach())?)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        self.out.forward(&merge_heads(&attend_rows(&q, &kv)?)?)
     }
 }
 
@@ -318,13 +320,9 @@ impl CrossAttention {
 
     /// x (B, 1, d); row `r` attends to its own memory `memories[r]` ((1, H, K, hd) each), so
     /// rows of different requests share one call.
-    pub fn step(&self, x: &Tensor, memories: &[(&Tensor, &Tensor)]) -> Result<Tensor> {
+    pub fn step(&self, x: &Tensor, memories: &[(Tensor, Tensor)]) -> Result<Tensor> {
         let q = split_heads(&self.q.forward(x)?, self.heads)?;
-        let mut outs = Vec::with_capacity(memories.len());
-        for (r, (k, v)) in memories.iter().enumerate() {
-            outs.push(attend(&q.narrow(0, r, 1)?, k, v, None)?);
-        }
-        self.out.forward(&merge_heads(&Tensor::cat(&outs, 0)?)?)
+        self.out.forward(&merge_heads(&attend_rows(&q, memories)?)?)
     }
 }
 

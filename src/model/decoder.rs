@@ -159,8 +159,11 @@ impl DecoderStack {
             let mut kv: Vec<&mut KvCache> =
                 caches.iter_mut().map(|c| &mut c.layers[i].self_kv).collect();
             x = (&x + l.self_attn.step(&h, &self.rope, &positions, &mut kv)?)?;
-            let memories: Vec<(&Tensor, &Tensor)> =
-                caches.iter().map(|c| (&c.layers[i].cross_k, &c.layers[i].cross_v)).collect();
+            // Cheap handles (reference-counted storage), not copies.
+            let memories: Vec<(Tensor, Tensor)> = caches
+                .iter()
+                .map(|c| (c.layers[i].cross_k.clone(), c.layers[i].cross_v.clone()))
+                .collect();
             x = (&x + l.cross_attn.step(&l.cross_norm.forward(&x)?, &memories)?)?;
             x = (&x + l.mlp.forward(&l.mlp_norm.forward(&x)?)?)?;
         }

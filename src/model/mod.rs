@@ -24,6 +24,7 @@ mod fourier;
 mod generate;
 mod head;
 mod input;
+mod ragged;
 mod sampling;
 #[cfg(test)]
 mod testing;
