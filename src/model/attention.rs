@@ -76,7 +76,20 @@ impl Dense {
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         match self {
-            Self::Train(lin) => Ok(x.apply(lin)?),
+            Self::Train(lin) => {
+                // As one 2-D matmul: candle's `Linear` broadcasts the weight over the batch,
+                // whose backward pass then materializes a weight gradient per batch entry.
+                let dims = x.dims();
+                let (rows, input) = (x.elem_count() / dims[dims.len() - 1], dims[dims.len() - 1]);
+                let y = x.reshape((rows, input))?.matmul(&lin.weight().t()?)?;
+                let y = match lin.bias() {
+                    Some(b) => y.broadcast_add(b)?,
+                    None => y,
+                };
+                let mut out_dims = dims.to_vec();
+                out_dims[dims.len() - 1] = y.dim(1)?;
+                Ok(y.reshape(out_dims)?)
+            }
             Self::Infer { weight_t, bias } => {
                 let y = x.broadcast_matmul(weight_t)?;
                 Ok(match bias {
