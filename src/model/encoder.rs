@@ -154,10 +154,13 @@ impl ShapeEncoder {
                 query_indices.dtype()
             )));
         }
-        let max = query_indices.max_all()?.to_scalar::<u32>().unwrap_or(0) as usize;
-        if k == 0 || max >= m {
+        if k == 0 {
+            return Err(ModelError::bad_input("no query indices"));
+        }
+        let max = query_indices.max_all()?.to_scalar::<u32>()? as usize;
+        if max >= m {
             return Err(ModelError::bad_input(format!(
-                "query indices must be non-empty and below the point count {m} (max {max})"
+                "query index {max} is not below the point count {m}"
             )));
         }
         let input = Tensor::cat(&[points, normals], 2)?;
@@ -182,5 +185,29 @@ impl ShapeEncoder {
                 logvar: Some(z.narrow(2, self.latent_dim, self.latent_dim)?.clamp(-30f32, 20f32)?),
             },
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::testing::{max_abs_diff, random_model};
+    use candle_core::Device;
+
+    #[test]
+    fn kl_bottleneck_encodes_its_mean_and_samples_for_training() {
+        let mut cfg = FaceConfig::micro();
+        cfg.bottleneck = Bottleneck::Kl { weight: 1e-3 };
+        let (_, model) = random_model(&cfg);
+        let dev = Device::Cpu;
+        let pts = Tensor::randn(0f32, 1.0, (2, cfg.num_points, 3), &dev).unwrap();
+        let idx: Vec<u32> = (0..2 * cfg.num_latents as u32).map(|i| i % 7).collect();
+        let idx = Tensor::from_vec(idx, (2, cfg.num_latents), &dev).unwrap();
+        let a = model.encode(&pts, &pts, &idx).unwrap();
+        assert_eq!(a.dims(), &[2, cfg.num_latents, cfg.latent_dim]);
+        assert_eq!(max_abs_diff(&a, &model.encode(&pts, &pts, &idx).unwrap()), 0.0);
+        let out = model.encode_train(&pts, &pts, &idx).unwrap();
+        assert!(max_abs_diff(&out.sample().unwrap(), &a) > 0.0);
+        assert!(out.kl().unwrap().to_scalar::<f32>().unwrap() >= 0.0);
     }
 }

@@ -2,7 +2,7 @@
 //! stateless API the engine drives (encode -> start_sequence -> step / head) and the
 //! teacher-forced path training uses.
 
-use candle_core::{D, Device, Tensor};
+use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{Init, VarBuilder};
 
 use super::cache::DecoderCache;
@@ -214,6 +214,15 @@ impl FaceModel {
                 faces.dims()
             )));
         }
+        if faces.elem_count() > 0
+            && faces.max_all()?.to_dtype(DType::U32)?.to_scalar::<u32>()? as usize
+                >= self.cfg.quant_levels
+        {
+            return Err(ModelError::bad_input(format!(
+                "face coordinates must be below Q = {}",
+                self.cfg.quant_levels
+            )));
+        }
         let start = self.start.reshape((1, 1, ()))?.broadcast_as((b, 1, self.cfg.decoder.width))?;
         let x = Tensor::cat(&[&start, &self.embed_faces(faces)?], 1)?;
         self.stack.forward(&x, latents)
@@ -412,5 +421,7 @@ mod tests {
                 .unwrap();
         let pts = Tensor::zeros((1, cfg.num_points, 3), DType::F32, &Device::Cpu).unwrap();
         assert!(model.encode(&pts, &pts, &bad_idx).is_err());
+        let bad_faces = faces_tensor(&[[cfg.quant_levels as u16; 9]]);
+        assert!(model.hidden_states(&random_latents(&cfg, 1, 1), &bad_faces).is_err());
     }
 }
