@@ -155,6 +155,7 @@ impl FaceModel {
     /// One decoder step for every sequence in `states`, whatever their lengths: each feeds its
     /// last face (or the start token) and gets the hidden state (B, d_model) from which the
     /// head decodes its next face. Every state must have received the face of its previous step.
+    /// After an error the states may be partly advanced: drop them.
     pub fn step(&self, states: &mut [&mut SequenceState]) -> Result<Tensor> {
         if states.is_empty() {
             return Err(ModelError::bad_input("step needs at least one sequence"));

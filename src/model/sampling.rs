@@ -63,18 +63,30 @@ impl Sampler {
     /// Picks a class among those for which `allowed` is true; `None` when none is.
     /// Non-finite logits count as the least likely.
     pub fn pick(&mut self, logits: &[f32], allowed: impl Fn(usize) -> bool) -> Option<usize> {
+        let score = |l: f32| if l.is_finite() { l } else { f32::MIN };
+        if self.params.temperature <= 0.0 {
+            // Greedy: the first maximum, so ties go to the lower class.
+            return logits
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| allowed(*i))
+                .fold(None, |best: Option<(usize, f32)>, (i, &l)| match best {
+                    Some((_, b)) if b >= score(l) => best,
+                    _ => Some((i, score(l))),
+                })
+                .map(|(i, _)| i);
+        }
         let mut cands: Vec<(usize, f32)> = logits
             .iter()
             .enumerate()
             .filter(|(i, _)| allowed(*i))
-            .map(|(i, &l)| (i, if l.is_finite() { l } else { f32::MIN }))
+            .map(|(i, &l)| (i, score(l)))
             .collect();
-        // Stable sort: ties keep the lower class first, so greedy is deterministic.
-        cands.sort_by(|a, b| b.1.total_cmp(&a.1));
-        let best = cands.first()?.0;
-        if self.params.temperature <= 0.0 {
-            return Some(best);
+        if cands.is_empty() {
+            return None;
         }
+        // Stable sort: ties keep the lower class first.
+        cands.sort_by(|a, b| b.1.total_cmp(&a.1));
         if let Some(k) = self.params.top_k {
             cands.truncate(k);
         }
