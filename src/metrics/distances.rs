@@ -270,8 +270,8 @@ mod tests {
         assert!(matches!(err(&far, &tiny, opts()), Some(MetricsError::InvalidPrediction(_))));
     }
 
-    /// Timing at the size DESIGN.md fixes: `cargo test --release --lib -- --ignored --nocapture
-    /// metrics::`.
+    /// Timing at the size DESIGN.md fixes, and the sampling floor of the cube:
+    /// `cargo test --release --lib -- --ignored --nocapture metrics::`.
     #[test]
     #[ignore = "timing, run in release"]
     fn time_mesh_distances_at_50k() {
@@ -279,10 +279,10 @@ mod tests {
         let pred = scaled(&gt, 1.1);
         let start = std::time::Instant::now();
         let d = mesh_distances(&pred, &gt, &MetricOptions::default()).unwrap();
-        println!(
-            "mesh_distances, {} faces each, N = 50,000: {:?} ({d:?})",
-            gt.faces.len(),
-            start.elapsed()
-        );
+        let elapsed = start.elapsed();
+        println!("mesh_distances, {} faces each, N = 50,000: {elapsed:?} ({d:?})", gt.faces.len());
+        let cube = cube(-1.0, 1.0);
+        let d = mesh_distances(&cube, &cube, &MetricOptions::default()).unwrap();
+        println!("cube [-1, 1]^3 against itself, N = 50,000: {d:?}");
     }
 }

@@ -75,13 +75,15 @@ pub fn tokenize_mesh(
 /// the sequence's order and winding.
 ///
 /// Nothing is checked: a non-canonical or collapsed face is reproduced as it is, and a
-/// coordinate past the last level is clamped by [`Quantizer::dequantize`].
+/// coordinate past the last level is clamped to it (and welded with that level's vertex).
 pub fn detokenize(faces: &[FaceToken], q: Quantizer) -> Mesh {
+    let last = q.levels() - 1;
     let mut index: HashMap<[u16; 3], u32> = HashMap::new();
     let mut vertices = Vec::new();
     let mut mesh_faces = Vec::with_capacity(faces.len());
     for face in faces {
         let corners = face_vertices(face).map(|zyx| {
+            let zyx = zyx.map(|c| c.min(last));
             *index.entry(zyx).or_insert_with(|| {
                 vertices.push(swap_xz(zyx).map(|c| q.dequantize(c)));
                 // Saturating only matters past 2^32 distinct vertices, i.e. more than 1.4e9
@@ -203,6 +205,15 @@ mod tests {
         assert!(flipped.iter().all(is_canonical_face));
         assert!(!is_canonical_sequence(&flipped));
         assert!(!is_canonical_sequence(&[[0, 0, 1, 0, 0, 0, 0, 1, 0]]));
+    }
+
+    #[test]
+    fn detokenize_clamps_and_welds_coordinates_past_the_last_level() {
+        let q = Quantizer::default();
+        let m = detokenize(&[[0, 0, 0, 0, 0, 127, 0, 5, 0], [0, 0, 0, 0, 0, 900, 0, 0, 9]], q);
+        assert_eq!(m.vertices.len(), 4);
+        assert_eq!(m.faces, [[0, 1, 2], [0, 1, 3]]);
+        assert_eq!(m.vertices[1], [1.0, -1.0, -1.0]);
     }
 
     #[test]
