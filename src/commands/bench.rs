@@ -19,11 +19,14 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 1.0)]
         seconds: f64,
     },
+    /// Decoding speed of the FACE model (random weights) against the per-coordinate baseline.
+    Decode(super::bench_decode::DecodeBenchArgs),
 }
 
 pub fn run(cmd: &BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Mesh { seconds } => bench_mesh(Duration::from_secs_f64(*seconds)),
+        BenchCommand::Decode(args) => super::bench_decode::run(args),
     }
 }
 

@@ -1,6 +1,7 @@
 //! One module per subcommand of `meshstream`.
 
 pub mod bench;
+pub mod bench_decode;
 pub mod convert;
 pub mod eval;
 pub mod sample;

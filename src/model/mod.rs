@@ -1,1 +1,80 @@
-//! placeholder, filled by its issue
+//! The FACE model in candle: shape encoder, autoregressive face decoder with per-sequence
+//! caches, CausalMLP head, generation with constraints, the per-coordinate baseline, and
+//! checkpoints.
+//!
+//! The model is stateless: a [`SequenceState`] (decoder caches and faces so far) belongs to the
+//! caller, and [`FaceModel::step`] advances any set of sequences, of any lengths, in one batch.
+//!
+//! # How the engine drives it
+//!
+//! ```text
+//! latents = model.encode(points, normals, fps_indices)      // (B, K, latent_dim), batched
+//! gen     = Generation::new(&model, &latents.get(i), opts)   // cross-attn K/V computed here, once
+//! loop { events = step_generations(&model, &mut running) }   // one decoder step for all rows,
+//!                                                            // then 9 head passes with per-row
+//!                                                            // sampling and constraint masks
+//! ```
+//! A generation may join `running` at any iteration (a face boundary) and is dropped when its
+//! event says it finished; `Generation::cancel` ends it early. Lower level, the same loop is
+//! [`FaceModel::step`] (hidden states) + [`FaceModel::head_logits`] /
+//! [`FaceModel::extend_context`] (the CausalMLP, coordinate by coordinate) +
+//! [`SequenceState::push_face`].
+//!
+//! # Decisions
+//!
+//! - Positions: RoPE in the decoder's self-attention (no learned table to outgrow); the encoder
+//!   has no positions (a point set has no order). Learned positions were not tried.
+//! - The CausalMLP's sub-heads reuse the decoder's 9 per-slot coordinate embedding tables for
+//!   the coordinates already chosen; sub-head j is an MLP on [h ; e_0 .. e_{j-1}].
+//! - Pre-norm LayerNorm blocks, GELU MLPs, no biases in attention projections.
+//! - Weight names (the checkpoint format): `encoder.{point_embed, query_block.*, layers.N.*,
+//!   norm, bottleneck}`, `decoder.{coord_embed, face_pooling.fc1/fc2, start, latent_up,
+//!   layers.N.{self_norm, self_attn.qkv/out, cross_norm, cross_attn.q/kv/out, mlp_norm,
+//!   mlp.fc1/fc2}, norm}`, `head.sub.J.fc1/fc2`; linear weights are (out, in) as in candle.
+//! - candle's fused kernels (layer norm, softmax, RoPE) have no backward pass: blocks use them
+//!   only when nothing tracks gradients, so build inference models from detached weights
+//!   ([`checkpoint::load`], [`checkpoint::inference_model`]); a `VarMap`-backed model trains.
+
+mod attention;
+mod baseline;
+mod batch;
+mod cache;
+pub mod checkpoint;
+mod config;
+mod constraints;
+mod decoder;
+mod device;
+mod embedding;
+mod encoder;
+#[cfg(test)]
+mod end_to_end;
+mod error;
+mod face;
+mod fourier;
+mod generate;
+mod head;
+mod input;
+mod ragged;
+mod sampling;
+#[cfg(test)]
+mod testing;
+
+pub use baseline::{BaselineState, CoordinateBaseline};
+pub use batch::{TrainBatch, TrainExample};
+pub use cache::{DecoderCache, KV_CHUNK};
+pub use config::{Bottleneck, COORDS_PER_FACE, FaceConfig, StackConfig};
+pub use constraints::{allowed_values, completion_exists, is_valid_next};
+pub use device::parse_device;
+pub use encoder::EncoderOutput;
+pub use error::ModelError;
+pub use face::{FaceModel, SequenceState, TrainLoss};
+pub use generate::{
+    FaceStream, FinishReason, GenerateOptions, Generation, StepEvent, generate, step_generations,
+};
+pub use input::PointCloudInput;
+pub use sampling::{Sampler, SamplingParams};
+
+/// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
+pub type FaceToken = [u16; 9];
+
+pub type Result<T, E = ModelError> = std::result::Result<T, E>;

@@ -1,0 +1,194 @@
+//! `meshstream bench decode`: decoding speed of the FACE model with random weights, against
+//! the per-coordinate baseline running the same transformer.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use comfy_table::Table;
+use meshstream::mesh::farthest_point_sampling;
+use meshstream::model::{
+    BaselineState, CoordinateBaseline, FaceConfig, FaceModel, GenerateOptions, Generation,
+    SamplingParams, checkpoint, parse_device, step_generations,
+};
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct DecodeBenchArgs {
+    /// Model preset (random weights).
+    #[arg(long, default_value = "tiny")]
+    pub preset: String,
+    /// cpu or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Faces per sequence for the throughput rows.
+    #[arg(long, default_value_t = 200)]
+    pub faces: usize,
+    /// Batch sizes for the throughput rows (aggregate faces/s).
+    #[arg(long, value_delimiter = ',', default_values_t = vec![1, 4, 16])]
+    pub batches: Vec<usize>,
+    /// Face counts at which FACE and the per-coordinate baseline are compared.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![200, 800])]
+    pub compare: Vec<usize>,
+}
+
+/// Points of a Fibonacci sphere with their normals: a deterministic stand-in point cloud.
+fn sphere_cloud(n: usize) -> Vec<[f32; 3]> {
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - y * y).sqrt();
+            let t = golden * i as f32;
+            [r * t.cos(), y, r * t.sin()]
+        })
+        .collect()
+}
+
+fn random_weights(
+    cfg: &FaceConfig,
+    device: &Device,
+) -> anyhow::Result<(FaceModel, CoordinateBaseline)> {
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
+    FaceModel::new(cfg, vb.pp("face"))?;
+    CoordinateBaseline::new(cfg, vb.pp("baseline"))?;
+    let weights = checkpoint::detached_weights(&varmap);
+    let vb = VarBuilder::from_tensors(weights, DType::F32, device);
+    Ok((FaceModel::new(cfg, vb.pp("face"))?, CoordinateBaseline::new(cfg, vb.pp("baseline"))?))
+}
+
+/// Decodes `faces` faces (no early end) for `batch` sequences together; returns the seconds
+/// taken, the faces decoded, and one sequence's KV-cache bytes (self, cross) at the end.
+fn decode_face(
+    model: &FaceModel,
+    latents: &Tensor,
+    batch: usize,
+    faces: usize,
+    constrained: bool,
+) -> anyhow::Result<(f64, usize, (usize, usize))> {
+    let options = GenerateOptions {
+        sampling: SamplingParams::greedy(),
+        max_faces: faces,
+        min_faces: if constrained { 0 } else { faces },
+        constrained,
+    };
+    let mut gens = (0..batch)
+        .map(|_| Generation::new(model, latents, options.clone()))
+        .collect::<Result<Vec<_>, _>>()?;
+    let t = Instant::now();
+    while gens.iter().any(|g| !g.is_finished()) {
+        let mut refs: Vec<&mut Generation> = gens.iter_mut().filter(|g| !g.is_finished()).collect();
+        step_generations(model, &mut refs)?;
+    }
+    let secs = t.elapsed().as_secs_f64();
+    let decoded = gens.iter().map(|g| g.faces().len()).sum();
+    let cache = gens[0].state().cache();
+    Ok((secs, decoded, (cache.self_attention_bytes(), cache.cross_attention_bytes())))
+}
+
+/// The baseline decodes 9 tokens per face for `faces` faces (one sequence).
+fn decode_baseline(
+    model: &CoordinateBaseline,
+    latents: &Tensor,
+    faces: usize,
+) -> anyhow::Result<(f64, usize)> {
+    let mut state: BaselineState = model.start_sequence(latents)?;
+    let t = Instant::now();
+    for _ in 0..9 * faces {
+        model.step_greedy(&mut [&mut state])?;
+    }
+    Ok((t.elapsed().as_secs_f64(), state.cache().self_attention_bytes()))
+}
+
+fn mib(bytes: usize) -> String {
+    format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
+}
+
+pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
+    let device = parse_device(&args.device)?;
+    let mut cfg = FaceConfig::preset(&args.preset)?;
+    let longest = args.compare.iter().copied().chain([args.faces]).max().unwrap_or(args.faces);
+    // Random weights: the position limit only has to cover the benchmark.
+    cfg.max_faces = cfg.max_faces.max(longest);
+    let (model, baseline) = random_weights(&cfg, &device).context("building the models")?;
+    println!(
+        "preset {} ({:.2}M parameters), {} threads, random weights, greedy",
+        args.preset,
+        cfg.parameter_count() as f64 / 1e6,
+        candle_core::utils::get_num_threads()
+    );
+
+    // Encoding: FPS on the CPU, then the encoder.
+    let cloud = sphere_cloud(cfg.num_points);
+    let flat: Vec<f32> = cloud.iter().flatten().copied().collect();
+    let points = Tensor::from_vec(flat, (1, cfg.num_points, 3), &device)?;
+    let encode = || -> anyhow::Result<(f64, f64, Tensor)> {
+        let t = Instant::now();
+        let idx: Vec<u32> = farthest_point_sampling(&cloud, cfg.num_latents, 0)
+            .into_iter()
+            .map(|i| i as u32)
+            .collect();
+        let fps = t.elapsed().as_secs_f64();
+        let idx = Tensor::from_vec(idx, (1, cfg.num_latents), &device)?;
+        let latents = model.encode(&points, &points, &idx)?;
+        Ok((fps, t.elapsed().as_secs_f64(), latents))
+    };
+    encode()?; // warm-up
+    let runs = (0..3).map(|_| encode()).collect::<anyhow::Result<Vec<_>>>()?;
+    let (fps, total) = runs.iter().fold((f64::MAX, f64::MAX), |(a, b), r| (a.min(r.0), b.min(r.1)));
+    let latents = runs[0].2.clone();
+
+    let mut table = Table::new();
+    table.set_header(vec!["measurement", "result"]);
+    table.add_row(vec![
+        format!(
+            "encode one point cloud ({} points -> {} latents)",
+            cfg.num_points, cfg.num_latents
+        ),
+        format!("{:.1} ms (FPS {:.1} ms), best of 3", total * 1e3, fps * 1e3),
+    ]);
+    decode_face(&model, &latents, 1, 8, false)?; // warm-up
+    for &b in &args.batches {
+        let (secs, n, _) = decode_face(&model, &latents, b, args.faces, false)?;
+        table.add_row(vec![
+            format!("FACE decode, batch {b} x {} faces", args.faces),
+            format!("{:.0} faces/s aggregate ({:.2} s)", n as f64 / secs, secs),
+        ]);
+    }
+    let (secs, n, _) = decode_face(&model, &latents, 1, args.faces, true)?;
+    table.add_row(vec![
+        "FACE decode, batch 1, constrained masks on".to_string(),
+        format!("{:.0} faces/s ({n} faces until EOS/dead end/budget)", n as f64 / secs),
+    ]);
+    let mut cache_rows = Vec::new();
+    for &faces in &args.compare {
+        let (face_secs, _, face_cache) = decode_face(&model, &latents, 1, faces, false)?;
+        let (base_secs, base_cache) = decode_baseline(&baseline, &latents, faces)?;
+        table.add_row(vec![
+            format!("{faces} faces: FACE ({faces} steps) vs per-coordinate ({} steps)", 9 * faces),
+            format!(
+                "{:.2} s vs {:.2} s: speedup {:.1}x ({:.0} vs {:.0} faces/s)",
+                face_secs,
+                base_secs,
+                base_secs / face_secs,
+                faces as f64 / face_secs,
+                faces as f64 / base_secs
+            ),
+        ]);
+        cache_rows.push((faces, face_cache, base_cache));
+    }
+    for (faces, (face_self, face_cross), base_self) in cache_rows {
+        table.add_row(vec![
+            format!("KV cache per sequence at {faces} faces (allocated)"),
+            format!(
+                "FACE {} self-attn + {} cross-attn; per-coordinate {} self-attn",
+                mib(face_self),
+                mib(face_cross),
+                mib(base_self)
+            ),
+        ]);
+    }
+    println!("{table}");
+    Ok(())
+}

@@ -1,0 +1,380 @@
+//! Building blocks shared by the encoder, the face decoder and the per-coordinate baseline:
+//! layer norm, MLP, rotary positions, self- and cross-attention.
+//!
+//! candle's fused kernels (layer norm, softmax, RoPE) have no backward pass, so every block
+//! picks them only when nothing in its input tracks gradients; while training, the
+//! differentiable formulas run instead. The two paths agree to float rounding.
+
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::kv_cache::KvCache;
+use candle_nn::{Init, Linear, VarBuilder};
+
+use super::ragged::attend_rows;
+use super::{ModelError, Result};
+
+fn tracks(xs: &[&Tensor]) -> bool {
+    xs.iter().any(|t| t.track_op())
+}
+
+/// Layer norm with weight and bias.
+#[derive(Debug, Clone)]
+pub struct Norm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f32,
+}
+
+impl Norm {
+    pub fn new(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get_with_hints(dim, "weight", Init::Const(1.0))?,
+            bias: vb.get_with_hints(dim, "bias", Init::Const(0.0))?,
+            eps: eps as f32,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if tracks(&[x, &self.weight, &self.bias]) {
+            Ok(candle_nn::ops::layer_norm_slow(x, &self.weight, &self.bias, self.eps)?)
+        } else {
+            Ok(candle_nn::ops::layer_norm(&x.contiguous()?, &self.weight, &self.bias, self.eps)?)
+        }
+    }
+}
+
+/// Softmax over the last dimension.
+pub fn softmax(x: &Tensor) -> Result<Tensor> {
+    if x.track_op() {
+        Ok(candle_nn::ops::softmax(x, D::Minus1)?)
+    } else {
+        Ok(candle_nn::ops::softmax_last_dim(x)?)
+    }
+}
+
+/// A linear layer stored as candle's `Linear` ((out, in) weight named `weight`, optional
+/// `bias`). For inference it keeps a contiguous (in, out) copy instead: the gemm behind
+/// candle's matmul is several times faster on a few rows with that layout than with the
+/// transposed view `Linear` multiplies by.
+#[derive(Debug, Clone)]
+pub enum Dense {
+    Train(Linear),
+    Infer { weight_t: Tensor, bias: Option<Tensor> },
+}
+
+impl Dense {
+    pub fn new(input: usize, output: usize, bias: bool, vb: VarBuilder) -> Result<Self> {
+        let lin = if bias {
+            candle_nn::linear(input, output, vb)?
+        } else {
+            candle_nn::linear_no_bias(input, output, vb)?
+        };
+        if lin.weight().track_op() {
+            return Ok(Self::Train(lin));
+        }
+        Ok(Self::Infer { weight_t: lin.weight().t()?.contiguous()?, bias: lin.bias().cloned() })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Train(lin) => {
+                // As one 2-D matmul: candle's `Linear` broadcasts the weight over the batch,
+                // whose backward pass then materializes a weight gradient per batch entry.
+                let dims = x.dims();
+                let (rows, input) = (x.elem_count() / dims[dims.len() - 1], dims[dims.len() - 1]);
+                let y = x.reshape((rows, input))?.matmul(&lin.weight().t()?)?;
+                let y = match lin.bias() {
+                    Some(b) => y.broadcast_add(b)?,
+                    None => y,
+                };
+                let mut out_dims = dims.to_vec();
+                out_dims[dims.len() - 1] = y.dim(1)?;
+                Ok(y.reshape(out_dims)?)
+            }
+            Self::Infer { weight_t, bias } => {
+                let y = x.broadcast_matmul(weight_t)?;
+                Ok(match bias {
+                    Some(b) => y.broadcast_add(b)?,
+                    None => y,
+                })
+            }
+        }
+    }
+}
+
+/// Two linear layers with a GELU between.
+#[derive(Debug, Clone)]
+pub struct Mlp {
+    fc1: Dense,
+    fc2: Dense,
+}
+
+impl Mlp {
+    pub fn new(input: usize, hidden: usize, output: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            fc1: Dense::new(input, hidden, true, vb.pp("fc1"))?,
+            fc2: Dense::new(hidden, output, true, vb.pp("fc2"))?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.fc2.forward(&self.fc1.forward(x)?.gelu()?)
+    }
+}
+
+/// Rotary position tables for positions `0..max_positions`.
+#[derive(Debug, Clone)]
+pub struct Rope {
+    cos: Tensor,
+    sin: Tensor,
+    max_positions: usize,
+}
+
+impl Rope {
+    pub fn new(head_dim: usize, max_positions: usize, theta: f64, device: &Device) -> Result<Self> {
+        let half = head_dim / 2;
+        let inv_freq: Vec<f32> =
+            (0..half).map(|i| (theta.powf(-((2 * i) as f64) / head_dim as f64)) as f32).collect();
+        let inv_freq = Tensor::from_vec(inv_freq, (1, half), device)?;
+        let pos = Tensor::arange(0u32, max_positions as u32, device)?
+            .to_dtype(DType::F32)?
+            .reshape((max_positions, 1))?;
+        let angles = pos.broadcast_mul(&inv_freq)?;
+        Ok(Self { cos: angles.cos()?, sin: angles.sin()?, max_positions })
+    }
+
+    pub fn max_positions(&self) -> usize {
+        self.max_positions
+    }
+
+    fn check(&self, position: usize) -> Result<()> {
+        if position >= self.max_positions {
+            return Err(ModelError::SequenceTooLong { position, limit: self.max_positions });
+        }
+        Ok(())
+    }
+
+    /// `x`: (B, H, T, hd) at positions `0..T`.
+    pub fn apply_prefix(&self, x: &Tensor) -> Result<Tensor> {
+        let t = x.dim(2)?;
+        if t == 0 {
+            return Ok(x.clone());
+        }
+        self.check(t - 1)?;
+        let cos = self.cos.narrow(0, 0, t)?;
+        let sin = self.sin.narrow(0, 0, t)?;
+        if x.track_op() {
+            rope_differentiable(x, &cos.unsqueeze(0)?, &sin.unsqueeze(0)?)
+        } else {
+            Ok(candle_nn::rotary_emb::rope(&x.contiguous()?, &cos, &sin)?)
+        }
+    }
+
+    /// `x`: (B, H, 1, hd), row `r` at position `positions[r]`.
+    pub fn apply_rows(&self, x: &Tensor, positions: &[usize]) -> Result<Tensor> {
+        if let Some(&p) = positions.iter().max() {
+            self.check(p)?;
+        }
+        let idx: Vec<u32> = positions.iter().map(|&p| p as u32).collect();
+        let idx = Tensor::from_vec(idx, positions.len(), x.device())?;
+        let cos = self.cos.index_select(&idx, 0)?.unsqueeze(1)?;
+        let sin = self.sin.index_select(&idx, 0)?.unsqueeze(1)?;
+        if x.track_op() {
+            rope_differentiable(x, &cos, &sin)
+        } else {
+            Ok(candle_nn::rotary_emb::rope(&x.contiguous()?, &cos, &sin)?)
+        }
+    }
+}
+
+/// The rotate-half RoPE of candle's `rope`, built from differentiable ops.
+/// `cos`/`sin`: (1 or B, T, hd/2).
+fn rope_differentiable(x: &Tensor, cos: &Tensor, sin: &Tensor) -> Result<Tensor> {
+    let cos = Tensor::cat(&[cos, cos], D::Minus1)?.unsqueeze(1)?;
+    let sin = Tensor::cat(&[sin, sin], D::Minus1)?.unsqueeze(1)?;
+    let half = x.dim(D::Minus1)? / 2;
+    let x1 = x.narrow(D::Minus1, 0, half)?;
+    let x2 = x.narrow(D::Minus1, half, half)?;
+    let rotated = Tensor::cat(&[&x2.neg()?, &x1], D::Minus1)?;
+    Ok((x.broadcast_mul(&cos)? + rotated.broadcast_mul(&sin)?)?)
+}
+
+/// Scaled dot-product attention. q: (B, H, Tq, hd), k/v: (B, H, Tk, hd), `mask` additive and
+/// broadcastable to (B, H, Tq, Tk).
+pub fn attend(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+    let scale = 1.0 / (q.dim(D::Minus1)? as f64).sqrt();
+    let w = (q.matmul(&k.t()?)? * scale)?;
+    let w = match mask {
+        Some(m) => w.broadcast_add(m)?,
+        None => w,
+    };
+    Ok(softmax(&w)?.matmul(v)?)
+}
+
+/// Additive causal mask (T, T): 0 on and below the diagonal, -inf above.
+pub fn causal_mask(t: usize, device: &Device) -> Result<Tensor> {
+    let mask: Vec<f32> = (0..t)
+        .flat_map(|i| (0..t).map(move |j| if j > i { f32::NEG_INFINITY } else { 0.0 }))
+        .collect();
+    Ok(Tensor::from_vec(mask, (t, t), device)?)
+}
+
+/// (B, T, H*hd) -> (B, H, T, hd), contiguous.
+fn split_heads(x: &Tensor, heads: usize) -> Result<Tensor> {
+    let (b, t, d) = x.dims3()?;
+    Ok(x.reshape((b, t, heads, d / heads))?.transpose(1, 2)?.contiguous()?)
+}
+
+/// (B, H, T, hd) -> (B, T, H*hd).
+fn merge_heads(x: &Tensor) -> Result<Tensor> {
+    let (b, h, t, hd) = x.dims4()?;
+    Ok(x.transpose(1, 2)?.reshape((b, t, h * hd))?)
+}
+
+/// Multi-head self-attention with a fused qkv projection, optionally rotary.
+#[derive(Debug, Clone)]
+pub struct SelfAttention {
+    qkv: Dense,
+    out: Dense,
+    heads: usize,
+}
+
+impl SelfAttention {
+    pub fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            qkv: Dense::new(dim, 3 * dim, false, vb.pp("qkv"))?,
+            out: Dense::new(dim, dim, false, vb.pp("out"))?,
+            heads,
+        })
+    }
+
+    fn project(&self, x: &Tensor) -> Result<(Tensor, Tensor, Tensor)> {
+        let (b, t, d) = x.dims3()?;
+        let hd = d / self.heads;
+        let qkv =
+            self.qkv.forward(x)?.reshape((b, t, 3, self.heads, hd))?.permute((2, 0, 3, 1, 4))?;
+        Ok((qkv.get(0)?.contiguous()?, qkv.get(1)?.contiguous()?, qkv.get(2)?.contiguous()?))
+    }
+
+    /// Whole sequences: x (B, T, d) at positions `0..T`.
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        rope: Option<&Rope>,
+        mask: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let (q, k, v) = self.project(x)?;
+        let (q, k) = match rope {
+            Some(r) => (r.apply_prefix(&q)?, r.apply_prefix(&k)?),
+            None => (q, k),
+        };
+        self.out.forward(&merge_heads(&attend(&q, &k, &v, mask)?)?)
+    }
+
+    /// One new position per row: x (B, 1, d); row `r` is at `positions[r]` and owns `caches[r]`,
+    /// which this call extends by one entry.
+    pub fn step(
+        &self,
+        x: &Tensor,
+        rope: &Rope,
+        positions: &[usize],
+        caches: &mut [&mut KvCache],
+    ) -> Result<Tensor> {
+        let (q, k, v) = self.project(x)?;
+        let q = rope.apply_rows(&q, positions)?;
+        let k = rope.apply_rows(&k, positions)?;
+        let kv = caches
+            .iter_mut()
+            .enumerate()
+            .map(|(r, cache)| {
+                // Detached: a cache must never hold on to an autograd graph.
+                Ok(cache.append(&k.narrow(0, r, 1)?.detach(), &v.narrow(0, r, 1)?.detach())?)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        self.out.forward(&merge_heads(&attend_rows(&q, &kv)?)?)
+    }
+}
+
+/// Multi-head cross-attention from a sequence to a memory of the same width.
+#[derive(Debug, Clone)]
+pub struct CrossAttention {
+    q: Dense,
+    kv: Dense,
+    out: Dense,
+    heads: usize,
+}
+
+impl CrossAttention {
+    pub fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            q: Dense::new(dim, dim, false, vb.pp("q"))?,
+            kv: Dense::new(dim, 2 * dim, false, vb.pp("kv"))?,
+            out: Dense::new(dim, dim, false, vb.pp("out"))?,
+            heads,
+        })
+    }
+
+    /// Keys and values of a memory (B, K, d): two (B, H, K, hd) tensors.
+    pub fn memory_kv(&self, memory: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (b, k, d) = memory.dims3()?;
+        let hd = d / self.heads;
+        let kv = self
+            .kv
+            .forward(memory)?
+            .reshape((b, k, 2, self.heads, hd))?
+            .permute((2, 0, 3, 1, 4))?;
+        Ok((kv.get(0)?.contiguous()?, kv.get(1)?.contiguous()?))
+    }
+
+    /// x (B, T, d) attends to the memory keys/values of the same batch.
+    pub fn forward(&self, x: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+        let q = split_heads(&self.q.forward(x)?, self.heads)?;
+        self.out.forward(&merge_heads(&attend(&q, k, v, None)?)?)
+    }
+
+    /// x (B, 1, d); row `r` attends to its own memory `memories[r]` ((1, H, K, hd) each), so
+    /// rows of different requests share one call.
+    pub fn step(&self, x: &Tensor, memories: &[(Tensor, Tensor)]) -> Result<Tensor> {
+        let q = split_heads(&self.q.forward(x)?, self.heads)?;
+        self.out.forward(&merge_heads(&attend_rows(&q, memories)?)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_nn::VarMap;
+
+    #[test]
+    fn fast_and_differentiable_paths_agree() {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 1.0, (2, 3, 5, 8), &dev).unwrap();
+        let rope = Rope::new(8, 16, 10_000.0, &dev).unwrap();
+        let fast = rope.apply_prefix(&x).unwrap();
+        let cos = rope.cos.narrow(0, 0, 5).unwrap().unsqueeze(0).unwrap();
+        let sin = rope.sin.narrow(0, 0, 5).unwrap().unsqueeze(0).unwrap();
+        let slow = rope_differentiable(&x, &cos, &sin).unwrap();
+        let diff = (fast - slow).unwrap().abs().unwrap().max_all().unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() < 1e-5);
+
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+        let norm = Norm::new(8, 1e-5, vb.pp("n")).unwrap();
+        let tracked = norm.forward(&x).unwrap();
+        let detached =
+            Norm { weight: norm.weight.detach(), bias: norm.bias.detach(), eps: norm.eps };
+        let fast = detached.forward(&x).unwrap();
+        let diff = (tracked - fast).unwrap().abs().unwrap().max_all().unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() < 1e-5);
+    }
+
+    #[test]
+    fn positions_past_the_table_are_an_error() {
+        let dev = Device::Cpu;
+        let rope = Rope::new(4, 3, 10_000.0, &dev).unwrap();
+        let x = Tensor::zeros((1, 1, 1, 4), DType::F32, &dev).unwrap();
+        assert!(matches!(
+            rope.apply_rows(&x, &[3]),
+            Err(ModelError::SequenceTooLong { position: 3, limit: 3 })
+        ));
+    }
+}

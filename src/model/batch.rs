@@ -1,0 +1,169 @@
+//! Padded training batches and the masked cross-entropy of the CausalMLP head.
+
+use candle_core::{D, DType, Device, Tensor};
+
+use super::config::COORDS_PER_FACE;
+use super::{FaceToken, ModelError, Result};
+
+/// One training example: a point cloud with normals, its FPS query indices, and the canonical
+/// face sequence of its mesh.
+#[derive(Debug, Clone)]
+pub struct TrainExample<'a> {
+    pub points: &'a [[f32; 3]],
+    pub normals: &'a [[f32; 3]],
+    pub query_indices: &'a [u32],
+    pub faces: &'a [FaceToken],
+}
+
+/// A batch padded to its longest face sequence. All examples must share the point and query
+/// counts.
+#[derive(Debug, Clone)]
+pub struct TrainBatch {
+    pub points: Tensor,
+    pub normals: Tensor,
+    pub query_indices: Tensor,
+    /// (B, N_max, 9) u32, zero past each row's length.
+    pub faces: Tensor,
+    pub lengths: Vec<usize>,
+}
+
+impl TrainBatch {
+    pub fn new(examples: &[TrainExample], device: &Device) -> Result<Self> {
+        let first = examples.first().ok_or_else(|| ModelError::bad_input("empty batch"))?;
+        let (m, k) = (first.points.len(), first.query_indices.len());
+        if let Some(e) = examples
+            .iter()
+            .find(|e| e.points.len() != m || e.normals.len() != m || e.query_indices.len() != k)
+        {
+            return Err(ModelError::bad_input(format!(
+                "examples differ in size: {} points / {} normals / {} queries, expected {m} / {m} / {k}",
+                e.points.len(),
+                e.normals.len(),
+                e.query_indices.len()
+            )));
+        }
+        let b = examples.len();
+        let n = examples.iter().map(|e| e.faces.len()).max().unwrap_or(0);
+        let flat3 = |pick: &dyn Fn(&TrainExample<'_>) -> Vec<f32>| -> Vec<f32> {
+            examples.iter().flat_map(pick).collect()
+        };
+        let mut faces = vec![0u32; b * n * COORDS_PER_FACE];
+        for (r, e) in examples.iter().enumerate() {
+            for (i, face) in e.faces.iter().enumerate() {
+                let at = (r * n + i) * COORDS_PER_FACE;
+                for (slot, &c) in face.iter().enumerate() {
+                    faces[at + slot] = u32::from(c);
+                }
+            }
+        }
+        let queries: Vec<u32> =
+            examples.iter().flat_map(|e| e.query_indices.iter().copied()).collect();
+        Ok(Self {
+            points: Tensor::from_vec(
+                flat3(&|e| e.points.iter().flatten().copied().collect()),
+                (b, m, 3),
+                device,
+            )?,
+            normals: Tensor::from_vec(
+                flat3(&|e| e.normals.iter().flatten().copied().collect()),
+                (b, m, 3),
+                device,
+            )?,
+            query_indices: Tensor::from_vec(queries, (b, k), device)?,
+            faces: Tensor::from_vec(faces, (b, n, COORDS_PER_FACE), device)?,
+            lengths: examples.iter().map(|e| e.faces.len()).collect(),
+        })
+    }
+
+    /// Summed cross-entropy over the 9 coordinates, averaged over the face positions of the
+    /// batch (each row's N faces plus its end-of-mesh step). `logits` as returned by
+    /// `FaceModel::teacher_forced_logits`.
+    pub fn cross_entropy(&self, logits: &[Tensor], quant_levels: usize) -> Result<Tensor> {
+        if logits.len() != COORDS_PER_FACE {
+            return Err(ModelError::bad_input(format!(
+                "{} logit tensors, expected 9",
+                logits.len()
+            )));
+        }
+        let dev = self.faces.device();
+        let (b, n, _) = self.faces.dims3()?;
+        let positions: usize = self.lengths.iter().map(|l| l + 1).sum();
+        // Sub-head 0 over N + 1 positions: the face's first coordinate, then EOS at N.
+        let faces = self.faces.to_vec3::<u32>()?;
+        let mut targets0 = vec![0u32; b * (n + 1)];
+        let mut weights0 = vec![0f32; b * (n + 1)];
+        for (r, &len) in self.lengths.iter().enumerate() {
+            for i in 0..=len {
+                targets0[r * (n + 1) + i] =
+                    if i < len { faces[r][i][0] } else { quant_levels as u32 };
+                weights0[r * (n + 1) + i] = 1.0;
+            }
+        }
+        let mut total = masked_nll(
+            &logits[0],
+            &Tensor::from_vec(targets0, (b, n + 1), dev)?,
+            &Tensor::from_vec(weights0, (b, n + 1), dev)?,
+        )?;
+        let weights: Vec<f32> = self
+            .lengths
+            .iter()
+            .flat_map(|&len| (0..n).map(move |i| if i < len { 1.0 } else { 0.0 }))
+            .collect();
+        let weights = Tensor::from_vec(weights, (b, n), dev)?;
+        for (j, l) in logits.iter().enumerate().skip(1) {
+            let targets = self.faces.narrow(2, j, 1)?.squeeze(2)?.contiguous()?;
+            total = (total + masked_nll(l, &targets, &weights)?)?;
+        }
+        Ok((total / positions as f64)?)
+    }
+}
+
+/// Sum over positions of weight * -log p(target). logits (B, T, C), targets (B, T) u32.
+fn masked_nll(logits: &Tensor, targets: &Tensor, weights: &Tensor) -> Result<Tensor> {
+    let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
+    let targets = targets.to_dtype(DType::U32)?.unsqueeze(D::Minus1)?.contiguous()?;
+    let picked = logp.contiguous()?.gather(&targets, D::Minus1)?;
+    Ok((picked.squeeze(D::Minus1)? * weights)?.sum_all()?.neg()?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FaceConfig;
+    use crate::model::testing::{random_faces, random_model};
+
+    #[test]
+    fn padded_loss_is_the_position_weighted_mean_of_row_losses() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let pts: Vec<[f32; 3]> =
+            (0..cfg.num_points).map(|i| [(i as f32).sin(), (i as f32).cos(), 0.5]).collect();
+        let queries: Vec<u32> = (0..cfg.num_latents as u32).collect();
+        let faces = [random_faces(&cfg, 5, 1), random_faces(&cfg, 2, 2)];
+        let example =
+            |f| TrainExample { points: &pts, normals: &pts, query_indices: &queries, faces: f };
+        let dev = Device::Cpu;
+        let loss = |ex: &[TrainExample<'_>]| {
+            let batch = TrainBatch::new(ex, &dev).unwrap();
+            model.loss(&batch).unwrap().total.to_scalar::<f32>().unwrap()
+        };
+        let a = loss(&[example(&faces[0])]);
+        let b = loss(&[example(&faces[1])]);
+        let both = loss(&[example(&faces[0]), example(&faces[1])]);
+        let expect = (a * 6.0 + b * 3.0) / 9.0;
+        assert!((both - expect).abs() < 1e-4, "{both} vs {expect}");
+        // Roughly uniform predictions at initialization: about ln(Q) per coordinate.
+        assert!(a > 0.0 && a < 9.0 * (cfg.quant_levels as f32 + 1.0).ln() * 2.0, "{a}");
+    }
+
+    #[test]
+    fn mismatched_examples_are_rejected() {
+        let pts = vec![[0.0f32; 3]; 4];
+        let q = vec![0u32; 2];
+        let a = TrainExample { points: &pts, normals: &pts, query_indices: &q, faces: &[] };
+        let b =
+            TrainExample { points: &pts[..3], normals: &pts[..3], query_indices: &q, faces: &[] };
+        assert!(TrainBatch::new(&[a.clone(), b], &Device::Cpu).is_err());
+        assert!(TrainBatch::new(&[], &Device::Cpu).is_err());
+    }
+}

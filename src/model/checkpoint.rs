@@ -1,0 +1,294 @@
+//! Checkpoints: `config.json` + `model.safetensors` in one directory. Loading checks every
+//! tensor against the config and names the first one that is missing or has the wrong shape.
+
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use candle_core::{DType, Device, Shape, Tensor};
+use candle_nn::var_builder::SimpleBackend;
+use candle_nn::{Init, VarBuilder, VarMap};
+
+use super::{FaceConfig, FaceModel, ModelError, Result};
+
+pub const CONFIG_FILE: &str = "config.json";
+pub const WEIGHTS_FILE: &str = "model.safetensors";
+
+/// Detached copies of a `VarMap`'s tensors: an inference model built from them runs candle's
+/// fused kernels and records no autograd graph.
+pub fn detached_weights(varmap: &VarMap) -> HashMap<String, Tensor> {
+    let data = varmap.data().lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    data.iter().map(|(name, var)| (name.clone(), var.as_tensor().detach())).collect()
+}
+
+/// An inference model sharing the current weights of a training `VarMap`.
+pub fn inference_model(cfg: &FaceConfig, varmap: &VarMap, device: &Device) -> Result<FaceModel> {
+    let vb = VarBuilder::from_tensors(detached_weights(varmap), DType::F32, device);
+    FaceModel::new(cfg, vb)
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
+    move |source| ModelError::Io { path: path.to_path_buf(), source }
+}
+
+/// Writes `config.json` and `model.safetensors` into `dir` (created if needed).
+pub fn save(dir: &Path, cfg: &FaceConfig, varmap: &VarMap) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let cfg_path = dir.join(CONFIG_FILE);
+    let json = serde_json::to_string_pretty(cfg).map_err(|e| ModelError::BadCheckpoint {
+        path: cfg_path.clone(),
+        message: e.to_string(),
+    })?;
+    std::fs::write(&cfg_path, json).map_err(io_err(&cfg_path))?;
+    let weights = detached_weights(varmap);
+    candle_core::safetensors::save(&weights, dir.join(WEIGHTS_FILE))?;
+    Ok(())
+}
+
+/// Reads and validates `config.json`.
+pub fn load_config(dir: &Path) -> Result<FaceConfig> {
+    let path = dir.join(CONFIG_FILE);
+    let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
+    let cfg: FaceConfig = serde_json::from_str(&text)
+        .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })?;
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String, Tensor>)> {
+    let path = dir.join(WEIGHTS_FILE);
+    if !path.is_file() {
+        return Err(ModelError::Io {
+            path,
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+        });
+    }
+    let tensors = candle_core::safetensors::load(&path, device)
+        .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })?;
+    Ok((path, tensors))
+}
+
+/// A problem with one tensor, recorded while the model is built.
+#[derive(Debug, Clone)]
+enum TensorProblem {
+    Missing(String),
+    Shape { name: String, expected: Vec<usize>, found: Vec<usize> },
+}
+
+impl TensorProblem {
+    fn into_error(self, path: &Path) -> ModelError {
+        let path = path.to_path_buf();
+        match self {
+            Self::Missing(name) => ModelError::MissingTensor { path, name },
+            Self::Shape { name, expected, found } => {
+                ModelError::ShapeMismatch { path, name, expected, found }
+            }
+        }
+    }
+}
+
+fn check(
+    tensors: &HashMap<String, Tensor>,
+    name: &str,
+    expected: &Shape,
+) -> std::result::Result<Tensor, TensorProblem> {
+    let t = tensors.get(name).ok_or_else(|| TensorProblem::Missing(name.to_string()))?;
+    if t.shape() != expected {
+        return Err(TensorProblem::Shape {
+            name: name.to_string(),
+            expected: expected.dims().to_vec(),
+            found: t.dims().to_vec(),
+        });
+    }
+    Ok(t.clone())
+}
+
+/// Loaded tensors plus what the model asked for and the first problem, so the error can name
+/// the tensor with both shapes.
+struct CheckedTensors {
+    tensors: HashMap<String, Tensor>,
+    used: Mutex<HashSet<String>>,
+    problem: Mutex<Option<TensorProblem>>,
+}
+
+/// The `VarBuilder` backend; shared so that `load` can read the record after the build.
+struct CheckedBackend(std::sync::Arc<CheckedTensors>);
+
+impl SimpleBackend for CheckedBackend {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        _: Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let this = &self.0;
+        match check(&this.tensors, name, &s) {
+            Ok(t) => {
+                this.used.lock().unwrap_or_else(|p| p.into_inner()).insert(name.to_string());
+                t.to_dtype(dtype)?.to_device(dev)
+            }
+            Err(problem) => {
+                let msg = format!("{problem:?}");
+                this.problem.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(problem);
+                Err(candle_core::Error::Msg(msg))
+            }
+        }
+    }
+
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        let t = self
+            .0
+            .tensors
+            .get(name)
+            .ok_or_else(|| candle_core::Error::CannotFindTensor { path: name.to_string() })?;
+        t.to_dtype(dtype)?.to_device(dev)
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.0.tensors.contains_key(name)
+    }
+}
+
+/// Loads an inference model from `dir`. Every tensor the config needs must be there with the
+/// right shape, and no other tensor may be.
+pub fn load(dir: &Path, device: &Device) -> Result<FaceModel> {
+    let cfg = load_config(dir)?;
+    let (path, tensors) = load_tensors(dir, device)?;
+    let names: Vec<String> = tensors.keys().cloned().collect();
+    let backend = std::sync::Arc::new(CheckedTensors {
+        tensors,
+        used: Mutex::new(HashSet::new()),
+        problem: Mutex::new(None),
+    });
+    let vb = VarBuilder::from_backend(
+        Box::new(CheckedBackend(backend.clone())),
+        DType::F32,
+        device.clone(),
+    );
+    let built = FaceModel::new(&cfg, vb);
+    let problem = backend.problem.lock().unwrap_or_else(|p| p.into_inner()).take();
+    if let Some(problem) = problem {
+        return Err(problem.into_error(&path));
+    }
+    let model = built?;
+    let used = backend.used.lock().unwrap_or_else(|p| p.into_inner());
+    let mut unused: Vec<String> = names.into_iter().filter(|n| !used.contains(n)).collect();
+    if !unused.is_empty() {
+        unused.sort();
+        return Err(ModelError::UnexpectedTensors { path, names: unused });
+    }
+    Ok(model)
+}
+
+/// Copies a checkpoint's weights into a training `VarMap` built for the same config (to resume
+/// training), with the same checks as [`load`].
+pub fn load_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<FaceConfig> {
+    let cfg = load_config(dir)?;
+    let (path, tensors) = load_tensors(dir, device)?;
+    let data = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &data[name];
+        let t = check(&tensors, name, var.shape()).map_err(|p| p.into_error(&path))?;
+        var.set(&t.to_dtype(var.dtype())?)?;
+    }
+    let mut unused: Vec<String> =
+        tensors.keys().filter(|n| !data.contains_key(*n)).cloned().collect();
+    if !unused.is_empty() {
+        unused.sort();
+        return Err(ModelError::UnexpectedTensors { path, names: unused });
+    }
+    Ok(cfg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::testing::{max_abs_diff, random_latents, random_model};
+
+    fn outputs(model: &FaceModel, latents: &Tensor) -> Tensor {
+        let mut s = model.start_sequence(latents).unwrap();
+        model.step(&mut [&mut s]).unwrap()
+    }
+
+    #[test]
+    fn save_load_gives_identical_outputs() {
+        let cfg = FaceConfig::micro();
+        let (varmap, model) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &cfg, &varmap).unwrap();
+        let loaded = load(dir.path(), &Device::Cpu).unwrap();
+        assert_eq!(loaded.config(), &cfg);
+        let latents = random_latents(&cfg, 1, 5);
+        assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&loaded, &latents)), 0.0);
+
+        // Resume path: a fresh VarMap takes the saved weights.
+        let (fresh, _) = random_model(&cfg);
+        load_into_varmap(dir.path(), &fresh, &Device::Cpu).unwrap();
+        let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
+        assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
+    }
+
+    #[test]
+    fn a_wrong_shape_names_the_tensor() {
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &cfg, &varmap).unwrap();
+        let mut tensors =
+            candle_core::safetensors::load(dir.path().join(WEIGHTS_FILE), &Device::Cpu).unwrap();
+        let name = "decoder.layers.1.mlp.fc1.weight";
+        tensors.insert(name.to_string(), Tensor::zeros((3, 4), DType::F32, &Device::Cpu).unwrap());
+        candle_core::safetensors::save(&tensors, dir.path().join(WEIGHTS_FILE)).unwrap();
+        let err = load(dir.path(), &Device::Cpu).unwrap_err();
+        match &err {
+            ModelError::ShapeMismatch { name: n, expected, found, .. } => {
+                assert_eq!(n, name);
+                assert_eq!(expected, &vec![64, 32]);
+                assert_eq!(found, &vec![3, 4]);
+            }
+            other => panic!("unexpected {other}"),
+        }
+        assert!(err.to_string().contains(name), "{err}");
+        let (fresh, _) = random_model(&cfg);
+        assert!(matches!(
+            load_into_varmap(dir.path(), &fresh, &Device::Cpu),
+            Err(ModelError::ShapeMismatch { .. })
+        ));
+    }
+
+    #[test]
+    fn missing_and_extra_tensors_are_named() {
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &cfg, &varmap).unwrap();
+        let path = dir.path().join(WEIGHTS_FILE);
+        let mut tensors = candle_core::safetensors::load(&path, &Device::Cpu).unwrap();
+        tensors.remove("head.sub.3.fc2.bias");
+        candle_core::safetensors::save(&tensors, &path).unwrap();
+        let err = load(dir.path(), &Device::Cpu).unwrap_err();
+        assert!(
+            matches!(&err, ModelError::MissingTensor { name, .. } if name == "head.sub.3.fc2.bias"),
+            "{err}"
+        );
+
+        let mut tensors = candle_core::safetensors::load(&path, &Device::Cpu).unwrap();
+        tensors.insert(
+            "head.sub.3.fc2.bias".into(),
+            Tensor::zeros(16, DType::F32, &Device::Cpu).unwrap(),
+        );
+        tensors.insert("stray".into(), Tensor::zeros(1, DType::F32, &Device::Cpu).unwrap());
+        candle_core::safetensors::save(&tensors, &path).unwrap();
+        let err = load(dir.path(), &Device::Cpu).unwrap_err();
+        assert!(
+            matches!(&err, ModelError::UnexpectedTensors { names, .. } if names == &["stray"]),
+            "{err}"
+        );
+
+        assert!(matches!(load(&dir.path().join("nope"), &Device::Cpu), Err(ModelError::Io { .. })));
+    }
+}

@@ -1,0 +1,52 @@
+//! The one error type of the model: every fallible call in `crate::model` returns it.
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("tensor error: {0}")]
+    Candle(#[from] candle_core::Error),
+
+    /// A caller passed a tensor or value whose shape does not fit the model.
+    #[error("bad input: {0}")]
+    BadInput(String),
+
+    #[error("invalid model config: {0}")]
+    InvalidConfig(String),
+
+    #[error("sequence too long: position {position} exceeds the model's limit of {limit}")]
+    SequenceTooLong { position: usize, limit: usize },
+
+    #[error("unknown device {0:?}: expected cpu or cuda:N")]
+    UnknownDevice(String),
+
+    #[error("device {0:?} needs CUDA, but meshstream was built without the `cuda` feature")]
+    CudaNotCompiled(String),
+
+    #[error("checkpoint {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("checkpoint {path}: {message}")]
+    BadCheckpoint { path: PathBuf, message: String },
+
+    #[error("checkpoint {path}: tensor {name:?} is missing")]
+    MissingTensor { path: PathBuf, name: String },
+
+    #[error(
+        "checkpoint {path}: tensor {name:?} has shape {found:?}, but the config expects {expected:?}"
+    )]
+    ShapeMismatch { path: PathBuf, name: String, expected: Vec<usize>, found: Vec<usize> },
+
+    #[error("checkpoint {path}: unexpected tensor(s) not used by the config: {names:?}")]
+    UnexpectedTensors { path: PathBuf, names: Vec<String> },
+}
+
+impl ModelError {
+    pub(crate) fn bad_input(msg: impl Into<String>) -> Self {
+        Self::BadInput(msg.into())
+    }
+}

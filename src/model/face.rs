@@ -1,0 +1,428 @@
+//! The FACE model: shape encoder, face embedding, decoder stack and CausalMLP head, with the
+//! stateless API the engine drives (encode -> start_sequence -> step / head) and the
+//! teacher-forced path training uses.
+
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::{Init, VarBuilder};
+
+use super::cache::DecoderCache;
+use super::config::{COORDS_PER_FACE, FaceConfig};
+use super::decoder::DecoderStack;
+use super::embedding::{CoordEmbedding, FacePooling};
+use super::encoder::{EncoderOutput, ShapeEncoder};
+use super::head::CausalHead;
+use super::{FaceToken, ModelError, Result};
+
+/// One sequence being decoded: its decoder cache (self-attention keys/values per layer and the
+/// cross-attention keys/values of its latents) and the faces decoded so far. The engine owns
+/// it; the model only reads and extends it.
+#[derive(Debug, Clone)]
+pub struct SequenceState {
+    cache: DecoderCache,
+    faces: Vec<FaceToken>,
+    quant_levels: usize,
+}
+
+impl SequenceState {
+    pub fn faces(&self) -> &[FaceToken] {
+        &self.faces
+    }
+
+    pub fn cache(&self) -> &DecoderCache {
+        &self.cache
+    }
+
+    /// True when the last step's hidden state has not been turned into a face yet.
+    pub fn awaits_face(&self) -> bool {
+        self.cache.len() == self.faces.len() + 1
+    }
+
+    /// Records the face decoded from the last step's hidden state.
+    pub fn push_face(&mut self, face: FaceToken) -> Result<()> {
+        if !self.awaits_face() {
+            return Err(ModelError::bad_input(format!(
+                "push_face after {} steps and {} faces: step first",
+                self.cache.len(),
+                self.faces.len()
+            )));
+        }
+        if let Some(c) = face.iter().find(|&&c| usize::from(c) >= self.quant_levels) {
+            return Err(ModelError::bad_input(format!(
+                "coordinate {c} out of 0..{}",
+                self.quant_levels
+            )));
+        }
+        self.faces.push(face);
+        Ok(())
+    }
+}
+
+/// What one teacher-forced training pass produced.
+#[derive(Debug, Clone)]
+pub struct TrainLoss {
+    /// The objective: `coords + kl_weight * kl`.
+    pub total: Tensor,
+    /// Summed cross-entropy over the 9 coordinates, averaged over face positions (EOS included).
+    pub coords: Tensor,
+    /// KL term of the bottleneck (zero without one).
+    pub kl: Tensor,
+}
+
+#[derive(Debug, Clone)]
+pub struct FaceModel {
+    cfg: FaceConfig,
+    encoder: ShapeEncoder,
+    coords: CoordEmbedding,
+    pooling: FacePooling,
+    start: Tensor,
+    stack: DecoderStack,
+    head: CausalHead,
+}
+
+impl FaceModel {
+    /// Builds the model with weights from `vb`: a `VarMap`-backed builder for training, a
+    /// checkpoint for inference (see `checkpoint::load`).
+    pub fn new(cfg: &FaceConfig, vb: VarBuilder) -> Result<Self> {
+        cfg.validate()?;
+        let dec = vb.pp("decoder");
+        Ok(Self {
+            cfg: cfg.clone(),
+            encoder: ShapeEncoder::new(cfg, vb.pp("encoder"))?,
+            coords: CoordEmbedding::new(cfg, dec.pp("coord_embed"))?,
+            pooling: FacePooling::new(cfg, dec.pp("face_pooling"))?,
+            start: dec.get_with_hints(
+                cfg.decoder.width,
+                "start",
+                Init::Randn { mean: 0.0, stdev: 0.02 },
+            )?,
+            stack: DecoderStack::new(cfg, cfg.max_faces + 1, dec.clone())?,
+            head: CausalHead::new(cfg, vb.pp("head"))?,
+        })
+    }
+
+    pub fn config(&self) -> &FaceConfig {
+        &self.cfg
+    }
+
+    pub fn device(&self) -> &Device {
+        self.start.device()
+    }
+
+    /// Latent sets C (B, K, latent_dim) of point clouds: points, normals (B, M, 3) f32 and the
+    /// FPS query indices (B, K) u32. A KL bottleneck yields its mean.
+    pub fn encode(
+        &self,
+        points: &Tensor,
+        normals: &Tensor,
+        query_indices: &Tensor,
+    ) -> Result<Tensor> {
+        Ok(self.encoder.forward(points, normals, query_indices)?.mean)
+    }
+
+    /// The latent set (1, K, latent_dim) of one point cloud with normals, in the normalized
+    /// frame.
+    pub fn encode_point_cloud(&self, cloud: &crate::mesh::Mesh) -> Result<Tensor> {
+        let input = super::PointCloudInput::new(cloud, self.cfg.num_latents, self.device())?;
+        self.encode(&input.points, &input.normals, &input.query_indices)
+    }
+
+    /// The encoder's full output (mean and log-variance), for training.
+    pub fn encode_train(
+        &self,
+        points: &Tensor,
+        normals: &Tensor,
+        query_indices: &Tensor,
+    ) -> Result<EncoderOutput> {
+        self.encoder.forward(points, normals, query_indices)
+    }
+
+    /// A new sequence conditioned on one latent set, (K, latent_dim) or (1, K, latent_dim).
+    /// Its cross-attention keys and values are computed here, once for the whole request.
+    pub fn start_sequence(&self, latents: &Tensor) -> Result<SequenceState> {
+        let latents = if latents.rank() == 2 { latents.unsqueeze(0)? } else { latents.clone() };
+        Ok(SequenceState {
+            cache: self.stack.start(&latents)?,
+            faces: Vec::new(),
+            quant_levels: self.cfg.quant_levels,
+        })
+    }
+
+    /// Face tokens (..., 9) u32 -> decoder inputs (..., d_model).
+    fn embed_faces(&self, faces: &Tensor) -> Result<Tensor> {
+        self.pooling.forward(&self.coords.embed(faces, 0)?)
+    }
+
+    /// One decoder step for every sequence in `states`, whatever their lengths: each feeds its
+    /// last face (or the start token) and gets the hidden state (B, d_model) from which the
+    /// head decodes its next face. Every state must have received the face of its previous step.
+    /// After an error the states may be partly advanced: drop them.
+    pub fn step(&self, states: &mut [&mut SequenceState]) -> Result<Tensor> {
+        if states.is_empty() {
+            return Err(ModelError::bad_input("step needs at least one sequence"));
+        }
+        if let Some(s) = states.iter().find(|s| s.cache.len() != s.faces.len()) {
+            return Err(ModelError::bad_input(format!(
+                "a sequence has {} steps but {} faces: push the face of its last step first",
+                s.cache.len(),
+                s.faces.len()
+            )));
+        }
+        let dev = self.device();
+        let last: Vec<u32> = states
+            .iter()
+            .flat_map(|s| s.faces.last().copied().unwrap_or_default().map(u32::from))
+            .collect();
+        let last = Tensor::from_vec(last, (states.len(), COORDS_PER_FACE), dev)?;
+        let mut x = self.embed_faces(&last)?;
+        if states.iter().any(|s| s.faces.is_empty()) {
+            let fresh: Vec<u8> = states.iter().map(|s| u8::from(s.faces.is_empty())).collect();
+            let fresh = Tensor::from_vec(fresh, (states.len(), 1), dev)?;
+            let start = self.start.unsqueeze(0)?.broadcast_as(x.shape())?;
+            x = fresh.broadcast_as(x.shape())?.where_cond(&start, &x)?;
+        }
+        let mut caches: Vec<&mut DecoderCache> = states.iter_mut().map(|s| &mut s.cache).collect();
+        self.stack.step(&x.unsqueeze(1)?, &mut caches)
+    }
+
+    /// Logits of coordinate `j` from its context (B, d_model + j * coord_embed_dim): Q classes,
+    /// plus end of mesh (the last class) for j = 0.
+    pub fn head_logits(&self, j: usize, context: &Tensor) -> Result<Tensor> {
+        self.head.logits(j, context)
+    }
+
+    /// Appends the chosen values of coordinate `j` (one per row) to a head context.
+    pub fn extend_context(&self, context: &Tensor, j: usize, values: &[u16]) -> Result<Tensor> {
+        if j >= COORDS_PER_FACE || values.len() != context.dim(0)? {
+            return Err(ModelError::bad_input(format!(
+                "{} values for coordinate {j} of {} rows",
+                values.len(),
+                context.dim(0)?
+            )));
+        }
+        let ids: Vec<u32> = values.iter().map(|&v| u32::from(v)).collect();
+        let ids = Tensor::from_vec(ids, (values.len(), 1), context.device())?;
+        Ok(Tensor::cat(&[context, &self.coords.embed(&ids, j)?], 1)?)
+    }
+
+    /// Teacher forcing: hidden states (B, N + 1, d_model) for latents (B, K, latent_dim) and
+    /// faces (B, N, 9) u32. Position i holds the state from which face i is decoded; position N
+    /// the one that should say end of mesh.
+    pub fn hidden_states(&self, latents: &Tensor, faces: &Tensor) -> Result<Tensor> {
+        let (b, _n, c) = faces.dims3()?;
+        if c != COORDS_PER_FACE {
+            return Err(ModelError::bad_input(format!(
+                "faces {:?} must be (B, N, 9)",
+                faces.dims()
+            )));
+        }
+        if faces.elem_count() > 0
+            && faces.max_all()?.to_dtype(DType::U32)?.to_scalar::<u32>()? as usize
+                >= self.cfg.quant_levels
+        {
+            return Err(ModelError::bad_input(format!(
+                "face coordinates must be below Q = {}",
+                self.cfg.quant_levels
+            )));
+        }
+        let start = self.start.reshape((1, 1, ()))?.broadcast_as((b, 1, self.cfg.decoder.width))?;
+        let x = Tensor::cat(&[&start, &self.embed_faces(faces)?], 1)?;
+        self.stack.forward(&x, latents)
+    }
+
+    /// The 9 sub-heads' logits with the ground-truth coordinates as the already-chosen prefix:
+    /// entry 0 is (B, N + 1, Q + 1) over all positions, entry j >= 1 is (B, N, Q).
+    pub fn teacher_forced_logits(&self, hidden: &Tensor, faces: &Tensor) -> Result<Vec<Tensor>> {
+        let n = faces.dim(1)?;
+        let embedded = self.coords.embed(faces, 0)?;
+        let h = hidden.narrow(1, 0, n)?;
+        let dc = self.coords.dim();
+        let mut out = vec![self.head.logits(0, hidden)?];
+        for j in 1..COORDS_PER_FACE {
+            let context = Tensor::cat(&[&h, &embedded.narrow(D::Minus1, 0, j * dc)?], D::Minus1)?;
+            out.push(self.head.logits(j, &context)?);
+        }
+        Ok(out)
+    }
+
+    /// The training objective on a padded batch (see [`super::TrainBatch`]).
+    pub fn loss(&self, batch: &super::TrainBatch) -> Result<TrainLoss> {
+        let enc = self.encode_train(&batch.points, &batch.normals, &batch.query_indices)?;
+        let latents = enc.sample()?;
+        let hidden = self.hidden_states(&latents, &batch.faces)?;
+        let logits = self.teacher_forced_logits(&hidden, &batch.faces)?;
+        let coords = batch.cross_entropy(&logits, self.cfg.quant_levels)?;
+        let kl = enc.kl()?;
+        let total = match self.cfg.bottleneck {
+            super::Bottleneck::Kl { weight } => (&coords + (&kl * weight)?)?,
+            super::Bottleneck::Linear => coords.clone(),
+        };
+        Ok(TrainLoss { total, coords, kl })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::testing::{
+        faces_tensor, max_abs_diff, random_faces, random_latents, random_model,
+    };
+    use candle_core::DType;
+
+    /// Hidden state and all 9 teacher-forced logits at `pos` of one row, from the cached path.
+    fn cached_outputs(
+        model: &FaceModel,
+        hidden_row: &Tensor,
+        face: Option<&FaceToken>,
+    ) -> Vec<Tensor> {
+        let mut out = vec![model.head_logits(0, hidden_row).unwrap()];
+        if let Some(face) = face {
+            let mut ctx = hidden_row.clone();
+            for j in 1..COORDS_PER_FACE {
+                ctx = model.extend_context(&ctx, j - 1, &[face[j - 1]]).unwrap();
+                out.push(model.head_logits(j, &ctx).unwrap());
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn cached_batched_steps_match_full_forward_for_rows_of_different_lengths() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let latents = random_latents(&cfg, 2, 1);
+        let faces = [random_faces(&cfg, 6, 2), random_faces(&cfg, 3, 3)];
+        // Reference: each row's full forward pass.
+        let reference: Vec<(Tensor, Vec<Tensor>)> = (0..2)
+            .map(|r| {
+                let f = faces_tensor(&faces[r]);
+                let h = model.hidden_states(&latents.narrow(0, r, 1).unwrap(), &f).unwrap();
+                let l = model.teacher_forced_logits(&h, &f).unwrap();
+                (h, l)
+            })
+            .collect();
+        let mut a = model.start_sequence(&latents.get(0).unwrap()).unwrap();
+        let mut b = model.start_sequence(&latents.narrow(0, 1, 1).unwrap()).unwrap();
+        let mut worst = 0f32;
+        let mut check = |r: usize, state: &mut SequenceState, hidden: &Tensor| {
+            let pos = state.faces().len();
+            let face = faces[r].get(pos);
+            let (ref_h, ref_l) = &reference[r];
+            worst =
+                worst.max(max_abs_diff(hidden, &ref_h.get(0).unwrap().narrow(0, pos, 1).unwrap()));
+            for (j, got) in cached_outputs(&model, hidden, face).iter().enumerate() {
+                let want = ref_l[j].get(0).unwrap().narrow(0, pos, 1).unwrap();
+                worst = worst.max(max_abs_diff(got, &want));
+            }
+            if let Some(f) = face {
+                state.push_face(*f).unwrap();
+            }
+        };
+        // Row a runs alone for 3 steps, then b joins and both step together: different lengths
+        // in one batch.
+        for _ in 0..3 {
+            let h = model.step(&mut [&mut a]).unwrap();
+            check(0, &mut a, &h);
+        }
+        for _ in 0..4 {
+            let h = model.step(&mut [&mut a, &mut b]).unwrap();
+            check(0, &mut a, &h.narrow(0, 0, 1).unwrap());
+            check(1, &mut b, &h.narrow(0, 1, 1).unwrap());
+        }
+        assert_eq!(a.cache().len(), 7);
+        assert_eq!(b.cache().len(), 4);
+        assert!(worst < 1e-4, "max abs diff {worst}");
+    }
+
+    #[test]
+    fn padded_batch_matches_single_rows() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let latents = random_latents(&cfg, 2, 4);
+        let long = random_faces(&cfg, 5, 5);
+        let mut short = random_faces(&cfg, 2, 6);
+        let single =
+            model.hidden_states(&latents.narrow(0, 1, 1).unwrap(), &faces_tensor(&short)).unwrap();
+        short.extend(random_faces(&cfg, 3, 7)); // padding content must not matter
+        let batch = Tensor::cat(&[faces_tensor(&long), faces_tensor(&short)], 0).unwrap();
+        let h = model.hidden_states(&latents, &batch).unwrap();
+        let diff = max_abs_diff(&h.narrow(0, 1, 1).unwrap().narrow(1, 0, 3).unwrap(), &single);
+        assert!(diff < 1e-5, "{diff}");
+    }
+
+    #[test]
+    fn changing_face_k_changes_nothing_at_or_before_k() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let latents = random_latents(&cfg, 1, 8);
+        let faces = random_faces(&cfg, 8, 9);
+        let k = 4;
+        let first_changed = 3;
+        let mut changed = faces.clone();
+        for c in &mut changed[k][first_changed..] {
+            *c = (*c + 1) % cfg.quant_levels as u16;
+        }
+        let run = |f: &[FaceToken]| {
+            let f = faces_tensor(f);
+            let h = model.hidden_states(&latents, &f).unwrap();
+            let l = model.teacher_forced_logits(&h, &f).unwrap();
+            (h, l)
+        };
+        let (h1, l1) = run(&faces);
+        let (h2, l2) = run(&changed);
+        // Hidden states at positions <= k see only faces < k.
+        assert_eq!(
+            max_abs_diff(&h1.narrow(1, 0, k + 1).unwrap(), &h2.narrow(1, 0, k + 1).unwrap()),
+            0.0
+        );
+        for j in 0..COORDS_PER_FACE {
+            // Positions < k: every sub-head unchanged. Position k: the sub-heads that have not
+            // yet seen a changed coordinate (j <= first_changed) unchanged.
+            let upto = if j <= first_changed { k + 1 } else { k };
+            let same = max_abs_diff(
+                &l1[j].narrow(1, 0, upto).unwrap(),
+                &l2[j].narrow(1, 0, upto).unwrap(),
+            );
+            assert_eq!(same, 0.0, "sub-head {j}");
+        }
+        // And the change does reach later positions.
+        assert!(
+            max_abs_diff(&h1.narrow(1, k + 1, 1).unwrap(), &h2.narrow(1, k + 1, 1).unwrap()) > 0.0
+        );
+    }
+
+    #[test]
+    fn parameter_count_matches_an_instantiated_model() {
+        for cfg in [FaceConfig::micro(), FaceConfig::tiny(), {
+            let mut c = FaceConfig::micro();
+            c.bottleneck = crate::model::Bottleneck::Kl { weight: 1e-3 };
+            c
+        }] {
+            let (varmap, _) = random_model(&cfg);
+            let n: usize = varmap.all_vars().iter().map(|v| v.elem_count()).sum();
+            assert_eq!(n, cfg.parameter_count());
+        }
+    }
+
+    #[test]
+    fn api_misuse_is_an_error_not_a_panic() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let mut s = model.start_sequence(&random_latents(&cfg, 1, 1)).unwrap();
+        assert!(s.push_face([0; 9]).is_err()); // no step yet
+        model.step(&mut [&mut s]).unwrap();
+        assert!(model.step(&mut [&mut s]).is_err()); // face of the last step missing
+        assert!(s.push_face([99; 9]).is_err()); // out of range
+        assert!(
+            model
+                .start_sequence(&Tensor::zeros((1, 3, 5), DType::F32, &Device::Cpu).unwrap())
+                .is_err()
+        );
+        let bad_idx =
+            Tensor::from_vec(vec![999u32; cfg.num_latents], (1, cfg.num_latents), &Device::Cpu)
+                .unwrap();
+        let pts = Tensor::zeros((1, cfg.num_points, 3), DType::F32, &Device::Cpu).unwrap();
+        assert!(model.encode(&pts, &pts, &bad_idx).is_err());
+        let bad_faces = faces_tensor(&[[cfg.quant_levels as u16; 9]]);
+        assert!(model.hidden_states(&random_latents(&cfg, 1, 1), &bad_faces).is_err());
+    }
+}
