@@ -1,6 +1,7 @@
 use std::path::PathBuf;
 
 use crate::mesh::MeshError;
+use crate::model::ModelError;
 use crate::tokenize::TokenizeError;
 
 #[derive(Debug, thiserror::Error)]
@@ -9,6 +10,24 @@ pub enum TrainError {
     Mesh(#[from] MeshError),
     #[error(transparent)]
     Tokenize(#[from] TokenizeError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Tensor(#[from] candle_core::Error),
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("{path}: bad manifest: {message}")]
     Manifest { path: PathBuf, message: String },
+    #[error("{path}: {message}")]
+    Weights { path: PathBuf, message: String },
+    #[error("JSON: {0}")]
+    Json(String),
+    #[error("the batch thread stopped")]
+    DataStopped,
+    #[error("{0}")]
+    Config(String),
 }

@@ -3,9 +3,14 @@
 
 pub mod augment;
 pub mod batch;
+pub mod checkpoint;
 pub mod dataset;
 mod error;
+pub mod evaluate;
+pub mod log;
 pub mod optim;
+pub mod plot;
 pub mod procedural;
+pub mod trainer;
 
 pub use error::TrainError;

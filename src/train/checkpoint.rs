@@ -1,0 +1,140 @@
+//! Training checkpoints: everything a run needs to continue exactly (weights, optimizer
+//! state, step, best score), written atomically; and exports with just what inference needs.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarMap;
+use serde::{Deserialize, Serialize};
+
+use crate::model::{FaceConfig, checkpoint as model_checkpoint};
+
+use super::TrainError;
+use super::optim::Optimizer;
+
+const OPTIMIZER_FILE: &str = "optimizer.safetensors";
+const STATE_FILE: &str = "state.json";
+
+/// Where a run keeps its files.
+#[derive(Debug, Clone)]
+pub struct RunDir(pub PathBuf);
+
+impl RunDir {
+    /// The run's full configuration (model, data, schedule).
+    pub fn config(&self) -> PathBuf {
+        self.0.join("train.json")
+    }
+    /// The latest checkpoint, for `--resume`.
+    pub fn checkpoint(&self) -> PathBuf {
+        self.0.join("checkpoint")
+    }
+    /// The exported weights with the best evaluation Chamfer distance so far.
+    pub fn best(&self) -> PathBuf {
+        self.0.join("best")
+    }
+    /// One JSON object per line: every step's metrics and every evaluation.
+    pub fn log(&self) -> PathBuf {
+        self.0.join("log.jsonl")
+    }
+}
+
+/// Progress that is not in the tensors.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct TrainState {
+    pub step: u64,
+    pub best_chamfer: Option<f64>,
+    /// Wall time spent training before this session, in seconds.
+    pub elapsed_s: f64,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| TrainError::Io { path: path.to_path_buf(), source }
+}
+
+/// Writes a checkpoint into `dir`: to a sibling temporary folder first, then renamed, so an
+/// interrupted save never leaves a half-written checkpoint behind.
+pub fn save(
+    dir: &Path,
+    cfg: &FaceConfig,
+    varmap: &VarMap,
+    optimizer: &Optimizer,
+    state: &TrainState,
+) -> Result<(), TrainError> {
+    let tmp = dir.with_extension("tmp");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
+    }
+    model_checkpoint::save(&tmp, cfg, varmap)?;
+    candle_core::safetensors::save(&optimizer.state()?, tmp.join(OPTIMIZER_FILE))?;
+    let state_path = tmp.join(STATE_FILE);
+    let json = serde_json::to_string_pretty(state).map_err(|e| TrainError::Json(e.to_string()))?;
+    std::fs::write(&state_path, json).map_err(io(&state_path))?;
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).map_err(io(dir))?;
+    }
+    std::fs::rename(&tmp, dir).map_err(io(dir))?;
+    Ok(())
+}
+
+/// Restores weights, optimizer state and progress from a checkpoint written by [`save`].
+pub fn restore(
+    dir: &Path,
+    varmap: &VarMap,
+    optimizer: &mut Optimizer,
+    device: &Device,
+) -> Result<TrainState, TrainError> {
+    load_weights(dir, varmap, device)?;
+    let opt_path = dir.join(OPTIMIZER_FILE);
+    let state = candle_core::safetensors::load(&opt_path, device)?;
+    optimizer.load_state(&state)?;
+    let state_path = dir.join(STATE_FILE);
+    let text = std::fs::read_to_string(&state_path).map_err(io(&state_path))?;
+    serde_json::from_str(&text)
+        .map_err(|e| TrainError::Json(format!("{}: {e}", state_path.display())))
+}
+
+/// Sets every variable of `varmap` from the weights of a model directory (a checkpoint or an
+/// export in any float type). Every variable must be there with its shape.
+pub fn load_weights(dir: &Path, varmap: &VarMap, device: &Device) -> Result<(), TrainError> {
+    let path = dir.join(model_checkpoint::WEIGHTS_FILE);
+    let tensors: HashMap<String, Tensor> = candle_core::safetensors::load(&path, device)?;
+    let vars =
+        varmap.data().lock().map_err(|_| TrainError::Json("variable map poisoned".into()))?;
+    for (name, var) in vars.iter() {
+        let t = tensors.get(name).ok_or_else(|| TrainError::Weights {
+            path: path.clone(),
+            message: format!("no tensor '{name}'"),
+        })?;
+        if t.dims() != var.dims() {
+            return Err(TrainError::Weights {
+                path: path.clone(),
+                message: format!(
+                    "tensor '{name}': expected shape {:?}, found {:?}",
+                    var.dims(),
+                    t.dims()
+                ),
+            });
+        }
+        var.set(&t.to_dtype(DType::F32)?)?;
+    }
+    Ok(())
+}
+
+/// Writes what inference needs (`config.json` + `model.safetensors`, no optimizer state) from
+/// a checkpoint or model directory, with the weights stored as `dtype` (F16 halves the size).
+pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
+    let cfg = model_checkpoint::load_config(from)?;
+    let src = from.join(model_checkpoint::WEIGHTS_FILE);
+    let tensors = candle_core::safetensors::load(&src, &Device::Cpu)?;
+    let converted = tensors
+        .into_iter()
+        .map(|(name, t)| Ok((name, t.to_dtype(dtype)?)))
+        .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
+    std::fs::create_dir_all(to).map_err(io(to))?;
+    let cfg_path = to.join(model_checkpoint::CONFIG_FILE);
+    let json = serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
+    std::fs::write(&cfg_path, json).map_err(io(&cfg_path))?;
+    candle_core::safetensors::save(&converted, to.join(model_checkpoint::WEIGHTS_FILE))?;
+    Ok(())
+}

@@ -1,0 +1,100 @@
+//! Loss and evaluation curves of a run, drawn from its JSONL log into a PNG.
+
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use super::TrainError;
+use super::log::LogRecord;
+
+/// Draws two panels: the training loss (raw and smoothed) with the evaluation loss, and the
+/// evaluation Chamfer distance.
+pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> {
+    let fail =
+        |e: &dyn std::fmt::Display| TrainError::Config(format!("plotting {}: {e}", out.display()));
+    // The font is embedded, so plotting needs nothing installed on the machine.
+    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
+        .map_err(|_| fail(&"invalid embedded font"))?;
+    let mut train = Vec::new();
+    let mut eval_loss = Vec::new();
+    let mut eval_cd = Vec::new();
+    for r in records {
+        match r {
+            LogRecord::Step { step, coord_loss, .. } => train.push((*step as f64, *coord_loss)),
+            LogRecord::Eval { step, report, .. } => {
+                eval_loss.push((*step as f64, report.loss));
+                if let Some(cd) = report.chamfer_mean {
+                    eval_cd.push((*step as f64, cd));
+                }
+            }
+        }
+    }
+    if train.is_empty() {
+        return Err(fail(&"the log has no training steps"));
+    }
+    let smoothed = exponential_moving_average(&train, 0.98);
+    let max_step = train.iter().map(|p| p.0).fold(1.0, f64::max);
+    let losses = train.iter().chain(&eval_loss).map(|p| p.1);
+    let (lo, hi) =
+        losses.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+
+    let root = BitMapBackend::new(out, (1000, 800)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(&e))?;
+    let (top, bottom) = root.split_vertically(480);
+    let mut chart = ChartBuilder::on(&top)
+        .caption("loss (nats per face, 9 coordinates summed)", ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0.0..max_step, (lo * 0.95).max(0.0)..hi * 1.02)
+        .map_err(|e| fail(&e))?;
+    chart.configure_mesh().x_desc("step").draw().map_err(|e| fail(&e))?;
+    chart
+        .draw_series(LineSeries::new(train.iter().copied(), BLUE.mix(0.25)))
+        .map_err(|e| fail(&e))?
+        .label("train (raw)")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], BLUE.mix(0.25)));
+    chart
+        .draw_series(LineSeries::new(smoothed, BLUE.stroke_width(2)))
+        .map_err(|e| fail(&e))?
+        .label("train (smoothed)")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], BLUE.stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(eval_loss.iter().copied(), RED.stroke_width(2)).point_size(4))
+        .map_err(|e| fail(&e))?
+        .label("evaluation")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], RED.stroke_width(2)));
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| fail(&e))?;
+
+    let cd_hi = eval_cd.iter().map(|p| p.1).fold(0.01, f64::max);
+    let mut chart = ChartBuilder::on(&bottom)
+        .caption("evaluation Chamfer distance (greedy reconstruction)", ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0.0..max_step, 0.0..cd_hi * 1.05)
+        .map_err(|e| fail(&e))?;
+    chart.configure_mesh().x_desc("step").draw().map_err(|e| fail(&e))?;
+    chart
+        .draw_series(LineSeries::new(eval_cd, GREEN.stroke_width(2)).point_size(4))
+        .map_err(|e| fail(&e))?;
+    root.present().map_err(|e| fail(&e))?;
+    Ok(())
+}
+
+fn exponential_moving_average(points: &[(f64, f64)], decay: f64) -> Vec<(f64, f64)> {
+    let mut avg = None;
+    points
+        .iter()
+        .map(|&(x, y)| {
+            let a = avg.map_or(y, |a: f64| decay * a + (1.0 - decay) * y);
+            avg = Some(a);
+            (x, a)
+        })
+        .collect()
+}

@@ -1,0 +1,359 @@
+//! The training loop of the autoencoder (`meshstream-train ae`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Var};
+use candle_nn::{VarBuilder, VarMap};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::MetricOptions;
+use crate::model::{FaceConfig, FaceModel, TrainBatch, checkpoint as model_checkpoint};
+use crate::tokenize::Quantizer;
+
+use super::TrainError;
+use super::batch::{BatchConfig, BatchSource, Prefetcher};
+use super::checkpoint::{self, RunDir, TrainState};
+use super::dataset::{FolderData, load_folder};
+use super::evaluate::{EvalReport, EvalSet, evaluate};
+use super::log::{LogRecord, LogWriter};
+use super::optim::{OptimConfig, Optimizer, clip_grad_norm, default_rule, learning_rate};
+
+/// Everything that defines a run; saved as `train.json` in the run folder, so `--resume`
+/// continues with exactly the same settings.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainConfig {
+    pub model: FaceConfig,
+    /// A folder of meshes (with an optional `manifest.csv`); none: procedural shapes only.
+    pub data: Option<PathBuf>,
+    pub train_split: String,
+    pub eval_split: String,
+    pub batch: BatchConfig,
+    pub optim: OptimConfig,
+    pub lr: f64,
+    pub warmup_steps: u64,
+    pub min_lr_ratio: f64,
+    pub steps: u64,
+    pub grad_clip: f64,
+    /// Batches whose gradients are summed into one optimizer step.
+    pub accumulate: usize,
+    pub checkpoint_every: u64,
+    pub eval_every: u64,
+    /// Held-aside meshes from the folder's eval split, and held-aside procedural shapes.
+    pub eval_folder_meshes: usize,
+    pub eval_procedural: usize,
+    /// Points per surface for the evaluation's Chamfer and Hausdorff distances.
+    pub eval_metric_samples: usize,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    pub state: TrainState,
+    pub interrupted: bool,
+    pub last_eval: Option<EvalReport>,
+}
+
+pub struct Trainer {
+    cfg: TrainConfig,
+    dir: RunDir,
+    device: Device,
+    varmap: VarMap,
+    model: FaceModel,
+    optimizer: Optimizer,
+    state: TrainState,
+    train_data: Option<Arc<FolderData>>,
+    eval_set: EvalSet,
+    log: LogWriter,
+}
+
+impl Trainer {
+    /// A new run in `dir` (its config written there), optionally starting from the weights of
+    /// an exported model (`init`); the optimizer starts fresh, so keep a warm-up.
+    pub fn create(
+        cfg: TrainConfig,
+        dir: PathBuf,
+        init: Option<&std::path::Path>,
+        device: Device,
+    ) -> Result<Self, TrainError> {
+        let dir = RunDir(dir);
+        std::fs::create_dir_all(&dir.0)
+            .map_err(|source| TrainError::Io { path: dir.0.clone(), source })?;
+        let json =
+            serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
+        std::fs::write(dir.config(), json)
+            .map_err(|source| TrainError::Io { path: dir.config(), source })?;
+        let trainer = Self::build(cfg, dir, device)?;
+        if let Some(init) = init {
+            let init_cfg = model_checkpoint::load_config(init)?;
+            if init_cfg != trainer.cfg.model {
+                return Err(TrainError::Config(format!(
+                    "{} has a different model configuration than this run",
+                    init.display()
+                )));
+            }
+            checkpoint::load_weights(init, &trainer.varmap, &trainer.device)?;
+        }
+        Ok(trainer)
+    }
+
+    /// Continues the run in `dir` exactly where its last checkpoint left it.
+    pub fn resume(dir: PathBuf, device: Device, steps: Option<u64>) -> Result<Self, TrainError> {
+        let dir = RunDir(dir);
+        let text = std::fs::read_to_string(dir.config())
+            .map_err(|source| TrainError::Io { path: dir.config(), source })?;
+        let mut cfg: TrainConfig =
+            serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
+        if let Some(steps) = steps {
+            cfg.steps = steps;
+        }
+        let mut trainer = Self::build(cfg, dir, device)?;
+        trainer.state = checkpoint::restore(
+            &trainer.dir.checkpoint(),
+            &trainer.varmap,
+            &mut trainer.optimizer,
+            &trainer.device,
+        )?;
+        Ok(trainer)
+    }
+
+    fn build(cfg: TrainConfig, dir: RunDir, device: Device) -> Result<Self, TrainError> {
+        let varmap = VarMap::new();
+        let model =
+            FaceModel::new(&cfg.model, VarBuilder::from_varmap(&varmap, DType::F32, &device))?;
+        let optimizer = Optimizer::new(&varmap, cfg.optim, default_rule)?;
+        let q = Quantizer::new(
+            u16::try_from(cfg.model.quant_levels)
+                .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
+        )?;
+        let max_faces = cfg.model.max_faces;
+        let (train_data, eval_data) = match &cfg.data {
+            Some(path) => (
+                Some(Arc::new(load_folder(path, Some(&cfg.train_split), max_faces, q)?)),
+                Some(load_folder(path, Some(&cfg.eval_split), max_faces, q)?),
+            ),
+            None => (None, None),
+        };
+        let eval_set = EvalSet::build(
+            eval_data.as_ref(),
+            cfg.eval_folder_meshes,
+            cfg.eval_procedural,
+            &cfg.batch.sample,
+            max_faces,
+        )?;
+        let log = LogWriter::append(&dir.log())?;
+        Ok(Self {
+            cfg,
+            dir,
+            device,
+            varmap,
+            model,
+            optimizer,
+            state: TrainState::default(),
+            train_data,
+            eval_set,
+            log,
+        })
+    }
+
+    /// Training meshes available (after skips) and what was skipped, for the start banner.
+    pub fn data_summary(&self) -> String {
+        match &self.train_data {
+            Some(d) => format!(
+                "{} training meshes ({} unreadable, {} without faces, {} over the face limit skipped); {} evaluation meshes",
+                d.meshes.len(),
+                d.skipped.unreadable.len(),
+                d.skipped.no_faces,
+                d.skipped.over_face_limit,
+                self.eval_set.items.len()
+            ),
+            None => {
+                format!("procedural shapes only; {} evaluation meshes", self.eval_set.items.len())
+            }
+        }
+    }
+
+    pub fn parameter_counts(&self) -> std::collections::HashMap<&'static str, usize> {
+        self.optimizer.counts()
+    }
+
+    pub fn state(&self) -> &TrainState {
+        &self.state
+    }
+
+    /// Trains until the configured step count, or until `stop` is set (Ctrl-C); checkpoints
+    /// every `checkpoint_every` steps and at the end, evaluates every `eval_every` steps and
+    /// at the end, and keeps the best export by evaluation Chamfer distance.
+    pub fn run(&mut self, stop: &AtomicBool, progress: bool) -> Result<RunSummary, TrainError> {
+        let source = BatchSource::new(self.train_data.clone(), self.cfg.batch.clone());
+        let accumulate = self.cfg.accumulate.max(1) as u64;
+        let prefetch = Prefetcher::spawn(source, self.state.step * accumulate, 4);
+        let bar = progress_bar(self.state.step, self.cfg.steps, progress);
+        let session = Instant::now();
+        let base_elapsed = self.state.elapsed_s;
+        let vars: Vec<Var> = self.varmap.all_vars();
+        let mut last_eval = None;
+        let mut interrupted = false;
+        while self.state.step < self.cfg.steps {
+            if stop.load(Ordering::SeqCst) {
+                interrupted = true;
+                break;
+            }
+            let t0 = Instant::now();
+            let mut grads: Option<GradStore> = None;
+            let (mut loss, mut coord_loss, mut positions, mut meshes) = (0.0, 0.0, 0, 0);
+            for _ in 0..accumulate {
+                let batch = prefetch.next_batch().ok_or(TrainError::DataStopped)??;
+                let examples: Vec<_> = batch.samples.iter().map(super::evaluate::example).collect();
+                let tensors = TrainBatch::new(&examples, &self.device)?;
+                let out = self.model.loss(&tensors)?;
+                loss += f64::from(out.total.to_scalar::<f32>()?) / accumulate as f64;
+                coord_loss += f64::from(out.coords.to_scalar::<f32>()?) / accumulate as f64;
+                positions += batch.positions();
+                meshes += batch.samples.len();
+                let step_grads = (out.total / accumulate as f64)?.backward()?;
+                grads = Some(match grads {
+                    None => step_grads,
+                    Some(mut acc) => {
+                        add_grads(&mut acc, &step_grads, &vars)?;
+                        acc
+                    }
+                });
+            }
+            let mut grads = grads.ok_or(TrainError::DataStopped)?;
+            let grad_norm = clip_grad_norm(&mut grads, &vars, self.cfg.grad_clip)?;
+            let lr = learning_rate(
+                self.state.step,
+                self.cfg.warmup_steps,
+                self.cfg.steps,
+                self.cfg.lr,
+                self.cfg.min_lr_ratio,
+            );
+            if !loss.is_finite() {
+                return Err(TrainError::Config(format!(
+                    "the loss became {loss} at step {}: lower the learning rate",
+                    self.state.step
+                )));
+            }
+            self.optimizer.step(&grads, lr)?;
+            self.state.step += 1;
+            self.state.elapsed_s = base_elapsed + session.elapsed().as_secs_f64();
+            let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
+            self.log.write(&LogRecord::Step {
+                step: self.state.step,
+                loss,
+                coord_loss,
+                lr,
+                grad_norm,
+                positions,
+                meshes,
+                faces_per_s,
+                elapsed_s: self.state.elapsed_s,
+            })?;
+            bar.set_position(self.state.step);
+            bar.set_message(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"));
+            let step = self.state.step;
+            if step % self.cfg.eval_every.max(1) == 0 || step == self.cfg.steps {
+                let report = bar.suspend(|| self.evaluate_and_keep_best())?;
+                bar.println(eval_line(step, &report));
+                last_eval = Some(report);
+            }
+            if step % self.cfg.checkpoint_every.max(1) == 0 {
+                self.save_checkpoint()?;
+            }
+        }
+        self.save_checkpoint()?;
+        bar.finish_and_clear();
+        Ok(RunSummary { state: self.state.clone(), interrupted, last_eval })
+    }
+
+    fn save_checkpoint(&self) -> Result<(), TrainError> {
+        checkpoint::save(
+            &self.dir.checkpoint(),
+            &self.cfg.model,
+            &self.varmap,
+            &self.optimizer,
+            &self.state,
+        )
+    }
+
+    /// Evaluates the current weights, logs the report, and exports them to `best/` when
+    /// their Chamfer distance is the lowest so far.
+    pub fn evaluate_and_keep_best(&mut self) -> Result<EvalReport, TrainError> {
+        let model = model_checkpoint::inference_model(&self.cfg.model, &self.varmap, &self.device)?;
+        let metric =
+            MetricOptions { samples: self.cfg.eval_metric_samples, ..MetricOptions::default() };
+        let report = evaluate(&model, &self.eval_set, 16, &metric)?;
+        self.log.write(&LogRecord::Eval {
+            step: self.state.step,
+            split: self.cfg.eval_split.clone(),
+            report: report.clone(),
+            elapsed_s: self.state.elapsed_s,
+        })?;
+        let better = match (report.chamfer_mean, self.state.best_chamfer) {
+            (Some(cd), Some(best)) => cd < best,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if better {
+            self.state.best_chamfer = report.chamfer_mean;
+            model_checkpoint::save(&self.dir.best(), &self.cfg.model, &self.varmap)?;
+        }
+        Ok(report)
+    }
+}
+
+/// Adds the gradients of `more` into `acc`, variable by variable.
+fn add_grads(acc: &mut GradStore, more: &GradStore, vars: &[Var]) -> Result<(), TrainError> {
+    for var in vars {
+        if let Some(g) = more.get(var.as_tensor()) {
+            let sum = match acc.remove(var.as_tensor()) {
+                Some(prev) => (prev + g)?,
+                None => g.clone(),
+            };
+            acc.insert(var.as_tensor(), sum);
+        }
+    }
+    Ok(())
+}
+
+fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
+    if !visible {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    if let Ok(style) = ProgressStyle::with_template(
+        "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
+    ) {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_position(start);
+    bar
+}
+
+pub fn eval_line(step: u64, r: &EvalReport) -> String {
+    let opt = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.4}"));
+    format!(
+        "eval @ {step}: loss {:.3}, CD {}, HD {}, failures {}/{}, exact {}, face-count error {:.2}",
+        r.loss,
+        opt(r.chamfer_mean),
+        opt(r.hausdorff_mean),
+        r.failures,
+        r.meshes,
+        r.exact,
+        r.face_count_error
+    )
+}
+
+/// Stops the run at the next step boundary on Ctrl-C (the run then checkpoints and exits).
+pub fn stop_flag_on_ctrl_c() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    // If a handler is already set (tests), the run simply cannot be interrupted that way.
+    let _ = ctrlc::set_handler(move || f.store(true, Ordering::SeqCst));
+    flag
+}
