@@ -99,6 +99,13 @@ fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
 /// Draco-compressed primitives look and is reported when the accessor is read.
 fn validate(root: &gltf_json::Root) -> Result<(), MeshError> {
     use gltf_json::validation::{Error, Validate};
+    // The crate's own check of POSITION indexes the accessors without a bounds check.
+    let positions = root.meshes.iter().flat_map(|m| &m.primitives).filter_map(|p| {
+        p.attributes.get(&gltf_json::validation::Checked::Valid(Semantic::Positions))
+    });
+    if let Some(bad) = positions.map(|i| i.value()).find(|&i| i >= root.accessors.len()) {
+        return Err(malformed(format!("POSITION refers to accessor {bad}, which does not exist")));
+    }
     let mut problems = Vec::new();
     root.validate(root, gltf_json::Path::new, &mut |path, error| {
         let path = path();
