@@ -331,3 +331,12 @@ fn a_mesh_placed_many_times_stops_at_the_limits() {
     assert!(matches!(result, Err(MeshError::TooLarge { .. })), "{result:?}");
     assert!(start.elapsed() < std::time::Duration::from_secs(2), "{:?}", start.elapsed());
 }
+
+#[test]
+fn json_made_of_tiny_objects_is_refused_before_parsing() {
+    let nodes = vec!["{}"; 1_100_000].join(",");
+    let text = format!(r#"{{"asset":{{"version":"2.0"}},"nodes":[{nodes}]}}"#);
+    assert!(matches!(read(text.as_bytes()), Err(MeshError::TooLarge { .. })));
+    let bytes = glb_of(text.as_bytes(), &[]);
+    assert!(matches!(read(&bytes), Err(MeshError::TooLarge { .. })));
+}

@@ -88,14 +88,37 @@ fn is_surface(mode: Mode) -> bool {
     matches!(mode, Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan)
 }
 
+/// The most JSON objects and arrays a glTF file may have. Parsed, each takes up to ~250 bytes
+/// for as little as 3 bytes of text (`{},`), so without this bound a file within the byte
+/// limit could take ~80 times its size in memory; with it, the JSON costs at most ~250 MB.
+/// Real files have a few objects per node, mesh and accessor: far fewer than a million.
+const MAX_JSON_CONTAINERS: u64 = 1 << 20;
+
+/// The JSON text of a glTF file: the whole file, or a GLB's JSON chunk.
+fn json_text(bytes: &[u8]) -> Result<&[u8], MeshError> {
+    if !bytes.starts_with(b"glTF") {
+        return Ok(bytes);
+    }
+    let word = |at: usize| {
+        let b = bytes.get(at..at + 4)?;
+        Some(u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    // Checked here because the crate subtracts the header size from the declared length
+    // without checking it.
+    if word(8).is_none_or(|n| n < 12) {
+        return Err(malformed("truncated GLB header"));
+    }
+    let json = word(12).and_then(|len| bytes.get(20..20usize.checked_add(len)?));
+    json.ok_or_else(|| malformed("truncated GLB JSON chunk"))
+}
+
 /// The document, validated, and the GLB binary chunk if any.
 fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
-    // The crate subtracts the header size from the declared length without checking it.
-    if bytes.starts_with(b"glTF") {
-        let declared = bytes.get(8..12).and_then(|b| b.try_into().ok()).map(u32::from_le_bytes);
-        if declared.is_none_or(|n| n < 12) {
-            return Err(malformed("truncated GLB header"));
-        }
+    let json = json_text(bytes)?;
+    let containers = json.iter().filter(|&&b| b == b'{' || b == b'[').count() as u64;
+    if containers > MAX_JSON_CONTAINERS {
+        let what = "glTF JSON objects and arrays";
+        return Err(MeshError::TooLarge { what, limit: MAX_JSON_CONTAINERS });
     }
     let gltf =
         gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| malformed(e.to_string()))?;
