@@ -302,3 +302,41 @@ fn written_glb_parses_back_with_the_gltf_crate() {
     assert_eq!(read(&bytes).unwrap(), cloud);
     assert!(matches!(write_mesh(&Mesh::default(), Format::Gltf), Err(MeshError::Invalid(_))));
 }
+
+#[test]
+fn without_a_default_scene_all_scenes_are_read_each_node_once() {
+    let mut bin = Bin::default();
+    let doc = triangle_doc(&mut bin);
+    let mut doc = bin.document(doc);
+    doc["scenes"] = json!([{"nodes": [0]}, {"nodes": [1, 0]}]);
+    doc["nodes"] = json!([{"mesh": 0}, {"mesh": 0, "translation": [0.0, 0.0, 1.0]}]);
+    let mesh = read(&glb_of(&serde_json::to_vec(&doc).unwrap(), &bin.bytes)).unwrap();
+    assert_eq!(mesh.faces, vec![[0, 1, 2], [3, 4, 5]]);
+    assert_close(&mesh.vertices[3..], &TRIANGLE.map(|[x, y, _]| [x, y, 1.0]));
+}
+
+#[test]
+fn a_mesh_placed_many_times_stops_at_the_limits() {
+    let mut bin = Bin::default();
+    let doc = triangle_doc(&mut bin);
+    let mut doc = bin.document(doc);
+    let primitive = doc["meshes"][0]["primitives"][0].clone();
+    doc["meshes"][0]["primitives"] = Value::Array(vec![primitive; 2000]);
+    doc["nodes"] = Value::Array(vec![json!({"mesh": 0}); 20_000]);
+    doc["scenes"] = json!([{"nodes": (0..20_000).collect::<Vec<_>>()}]);
+    let bytes = glb_of(&serde_json::to_vec(&doc).unwrap(), &bin.bytes);
+    let limits = ReadLimits { max_bytes: 1 << 24, max_vertices: 30_000, max_faces: 10_000 };
+    let start = std::time::Instant::now();
+    let result = read_mesh(&bytes, Format::Gltf, &limits);
+    assert!(matches!(result, Err(MeshError::TooLarge { .. })), "{result:?}");
+    assert!(start.elapsed() < std::time::Duration::from_secs(2), "{:?}", start.elapsed());
+}
+
+#[test]
+fn json_made_of_tiny_objects_is_refused_before_parsing() {
+    let nodes = vec!["{}"; 1_100_000].join(",");
+    let text = format!(r#"{{"asset":{{"version":"2.0"}},"nodes":[{nodes}]}}"#);
+    assert!(matches!(read(text.as_bytes()), Err(MeshError::TooLarge { .. })));
+    let bytes = glb_of(text.as_bytes(), &[]);
+    assert!(matches!(read(&bytes), Err(MeshError::TooLarge { .. })));
+}

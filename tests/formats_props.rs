@@ -29,6 +29,11 @@ fn mesh() -> impl Strategy<Value = Mesh> {
         .prop_map(|(vertices, faces, normals)| Mesh { vertices, faces, normals })
 }
 
+/// 256 cases per property (a few seconds in all), or `PROPTEST_CASES` for a longer hunt.
+fn cases() -> u32 {
+    std::env::var("PROPTEST_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(256)
+}
+
 fn read(bytes: &[u8], format: Format) -> Result<Mesh, MeshError> {
     read_mesh(bytes, format, &ReadLimits::default())
 }
@@ -39,7 +44,7 @@ fn unit(n: [f32; 3]) -> Option<[f32; 3]> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(256))]
+    #![proptest_config(ProptestConfig::with_cases(cases()))]
 
     #[test]
     fn obj_and_ply_round_trip_exactly(mesh in mesh()) {
@@ -192,7 +197,7 @@ fn apply(bytes: &mut Vec<u8>, damage: &Damage) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(256))]
+    #![proptest_config(ProptestConfig::with_cases(cases()))]
 
     #[test]
     fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..2048)) {

@@ -243,6 +243,12 @@ mod tests {
             read_mesh_file(&unnamed, &ReadLimits::default()),
             Err(MeshError::Io { .. })
         ));
+        let obj = write_mesh(&mesh, Format::Obj).unwrap();
+        let just_under = ReadLimits { max_bytes: obj.len() as u64 - 1, ..ReadLimits::default() };
+        assert!(matches!(
+            read_mesh(&obj, Format::Obj, &just_under),
+            Err(MeshError::TooLarge { .. })
+        ));
         let bad = Mesh::new(vec![[0.0; 3]], vec![[0, 0, 1]]);
         assert!(matches!(write_mesh(&bad, Format::Obj), Err(MeshError::Invalid(_))));
     }

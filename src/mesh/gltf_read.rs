@@ -43,42 +43,82 @@ pub(crate) fn read(
     let (document, blob) = parse(bytes)?;
     let draco_used = document.extensions_used().any(|e| e == DRACO);
     let buffers = load_buffers(&document, blob, base, limits, bytes.len() as u64)?;
-    let parts = scene_parts(&document)?;
+    let instances = instances(&document)?;
 
-    let is_surface = |p: &Part| {
-        matches!(p.primitive.mode(), Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan)
+    // Which primitives to read is decided over the meshes placed in the scene, each once
+    // (a mesh may be placed many times). Lines carry no surface, and points beside a surface
+    // are not part of it: surfaces are read when there are any, else points.
+    let mut placed = vec![false; document.meshes().len()];
+    for instance in &instances {
+        if let Some(p) = placed.get_mut(instance.mesh.index()) {
+            *p = true;
+        }
+    }
+    let primitives = || {
+        document
+            .meshes()
+            .filter(|m| placed.get(m.index()) == Some(&true))
+            .flat_map(|m| m.primitives())
     };
-    let is_points = |p: &Part| p.primitive.mode() == Mode::Points;
-    // Lines carry no surface, and points beside a surface are not part of it: read surfaces
-    // when there are any, else points.
-    let parts: Vec<&Part> = if parts.iter().any(is_surface) {
-        parts.iter().filter(|p| is_surface(p)).collect()
-    } else if parts.iter().any(is_points) {
-        parts.iter().filter(|p| is_points(p)).collect()
-    } else if parts.is_empty() {
-        Vec::new()
+    let wanted: fn(Mode) -> bool = if primitives().any(|p| is_surface(p.mode())) {
+        is_surface
+    } else if primitives().any(|p| p.mode() == Mode::Points) {
+        |mode| mode == Mode::Points
+    } else if primitives().next().is_none() {
+        |_| false
     } else {
         return Err(unsupported("the only primitives are lines, which have no surface"));
     };
-    let with_normals = parts.iter().all(|p| p.primitive.get(&Semantic::Normals).is_some());
+    let with_normals =
+        primitives().filter(|p| wanted(p.mode())).all(|p| p.get(&Semantic::Normals).is_some());
 
     let mut asm = Assembler::new(FORMAT, limits);
     let mut normals = Vec::new();
     let ctx = Context { buffers: &buffers, draco_used };
-    for part in parts {
-        ctx.read_part(part, &mut asm, with_normals.then_some(&mut normals))?;
+    for instance in &instances {
+        for primitive in instance.mesh.primitives().filter(|p| wanted(p.mode())) {
+            let normals = with_normals.then_some(&mut normals);
+            ctx.read_primitive(&primitive, &instance.world, &mut asm, normals)?;
+        }
     }
     asm.finish((with_normals && !normals.is_empty()).then_some(normals))
 }
 
+fn is_surface(mode: Mode) -> bool {
+    matches!(mode, Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan)
+}
+
+/// The most JSON objects and arrays a glTF file may have. Parsed, each takes up to ~250 bytes
+/// for as little as 3 bytes of text (`{},`), so without this bound a file within the byte
+/// limit could take ~80 times its size in memory; with it, the JSON costs at most ~250 MB.
+/// Real files have a few objects per node, mesh and accessor: far fewer than a million.
+const MAX_JSON_CONTAINERS: u64 = 1 << 20;
+
+/// The JSON text of a glTF file: the whole file, or a GLB's JSON chunk.
+fn json_text(bytes: &[u8]) -> Result<&[u8], MeshError> {
+    if !bytes.starts_with(b"glTF") {
+        return Ok(bytes);
+    }
+    let word = |at: usize| {
+        let b = bytes.get(at..at + 4)?;
+        Some(u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    // Checked here because the crate subtracts the header size from the declared length
+    // without checking it.
+    if word(8).is_none_or(|n| n < 12) {
+        return Err(malformed("truncated GLB header"));
+    }
+    let json = word(12).and_then(|len| bytes.get(20..20usize.checked_add(len)?));
+    json.ok_or_else(|| malformed("truncated GLB JSON chunk"))
+}
+
 /// The document, validated, and the GLB binary chunk if any.
 fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
-    // The crate subtracts the header size from the declared length without checking it.
-    if bytes.starts_with(b"glTF") {
-        let declared = bytes.get(8..12).and_then(|b| b.try_into().ok()).map(u32::from_le_bytes);
-        if declared.is_none_or(|n| n < 12) {
-            return Err(malformed("truncated GLB header"));
-        }
+    let json = json_text(bytes)?;
+    let containers = json.iter().filter(|&&b| b == b'{' || b == b'[').count() as u64;
+    if containers > MAX_JSON_CONTAINERS {
+        let what = "glTF JSON objects and arrays";
+        return Err(MeshError::TooLarge { what, limit: MAX_JSON_CONTAINERS });
     }
     let gltf =
         gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| malformed(e.to_string()))?;
@@ -99,6 +139,13 @@ fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
 /// Draco-compressed primitives look and is reported when the accessor is read.
 fn validate(root: &gltf_json::Root) -> Result<(), MeshError> {
     use gltf_json::validation::{Error, Validate};
+    // The crate's own check of POSITION indexes the accessors without a bounds check.
+    let positions = root.meshes.iter().flat_map(|m| &m.primitives).filter_map(|p| {
+        p.attributes.get(&gltf_json::validation::Checked::Valid(Semantic::Positions))
+    });
+    if let Some(bad) = positions.map(|i| i.value()).find(|&i| i >= root.accessors.len()) {
+        return Err(malformed(format!("POSITION refers to accessor {bad}, which does not exist")));
+    }
     let mut problems = Vec::new();
     root.validate(root, gltf_json::Path::new, &mut |path, error| {
         let path = path();
@@ -190,50 +237,54 @@ fn read_external(
     std::fs::read(&path).map_err(io)
 }
 
-/// A primitive placed in the scene.
-struct Part<'a> {
-    primitive: Primitive<'a>,
+/// A mesh placed in the scene by a node.
+struct Instance<'a> {
+    mesh: gltf::Mesh<'a>,
     world: Mat4,
 }
 
-/// Every primitive of the scene, with its node's world transform. Each node of a scene may be
-/// reached once: a node hierarchy is a forest, and a cycle or shared child would otherwise
-/// loop forever or multiply geometry without bound.
-fn scene_parts(document: &Document) -> Result<Vec<Part<'_>>, MeshError> {
+/// Every mesh the scene places, with its node's world transform: the default scene, else the
+/// union of all scenes. A node hierarchy is a forest, so each node is reached once per scene;
+/// a node reached twice in one scene (a cycle or a shared child) is refused, since it would
+/// loop forever or multiply geometry without bound. A node another scene already placed is
+/// not placed again (its world transform is the same in every scene), so the work stays
+/// linear in the number of nodes.
+fn instances(document: &Document) -> Result<Vec<Instance<'_>>, MeshError> {
     let scenes: Vec<_> = match document.default_scene() {
         Some(scene) => vec![scene],
         None => document.scenes().collect(),
     };
-    let mut parts = Vec::new();
     if scenes.is_empty() {
         // No scene at all: every mesh as it is.
-        for mesh in document.meshes() {
-            parts.extend(mesh.primitives().map(|primitive| Part { primitive, world: IDENTITY }));
-        }
-        return Ok(parts);
+        return Ok(document.meshes().map(|mesh| Instance { mesh, world: IDENTITY }).collect());
     }
-    for scene in scenes {
-        let mut visited = vec![false; document.nodes().len()];
+    let mut instances = Vec::new();
+    // 0: not reached yet; otherwise 1 + the number of the scene that reached the node.
+    let mut reached_in = vec![0usize; document.nodes().len()];
+    for (number, scene) in scenes.into_iter().enumerate() {
+        let stamp = number + 1;
         let mut stack: Vec<_> = scene.nodes().map(|n| (n, IDENTITY)).collect();
         stack.reverse();
         while let Some((node, parent)) = stack.pop() {
-            let seen = visited.get_mut(node.index()).ok_or_else(|| malformed("bad node index"))?;
-            if std::mem::replace(seen, true) {
-                return Err(malformed(format!(
-                    "node {} is reached twice in a scene",
-                    node.index()
-                )));
+            let reached = reached_in.get_mut(node.index()).ok_or_else(|| malformed("bad node"))?;
+            match *reached {
+                0 => *reached = stamp,
+                s if s == stamp => {
+                    let i = node.index();
+                    return Err(malformed(format!("node {i} is reached twice in a scene")));
+                }
+                _ => continue,
             }
             let local = node.transform().matrix().map(|column| column.map(f64::from));
             let world = mul(&parent, &local);
             if let Some(mesh) = node.mesh() {
-                parts.extend(mesh.primitives().map(|primitive| Part { primitive, world }));
+                instances.push(Instance { mesh, world });
             }
             let children: Vec<_> = node.children().collect();
             stack.extend(children.into_iter().rev().map(|child| (child, world)));
         }
     }
-    Ok(parts)
+    Ok(instances)
 }
 
 fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
@@ -368,13 +419,13 @@ impl<'b> Context<'b> {
         self.accessor(accessor, semantic)
     }
 
-    fn read_part(
+    fn read_primitive(
         &self,
-        part: &Part,
+        primitive: &Primitive,
+        world: &Mat4,
         asm: &mut Assembler,
         normals: Option<&mut Vec<[f32; 3]>>,
     ) -> Result<(), MeshError> {
-        let primitive = &part.primitive;
         let Some(positions) = primitive.get(&Semantic::Positions) else {
             return Err(malformed(format!("primitive {} has no POSITION", primitive.index())));
         };
@@ -388,9 +439,9 @@ impl<'b> Context<'b> {
         let base = base as u32;
         asm.reserve(n as u64, 0)?;
         for i in 0..n {
-            asm.push_vertex(transform_point(&part.world, positions.vec3(i)?))?;
+            asm.push_vertex(transform_point(world, positions.vec3(i)?))?;
         }
-        let (normal_matrix, winding) = normal_matrix(&part.world);
+        let (normal_matrix, winding) = normal_matrix(world);
         if let Some(normals) = normals {
             let accessor =
                 primitive.get(&Semantic::Normals).ok_or_else(|| malformed("NORMAL vanished"))?;

@@ -20,7 +20,7 @@ enum CornerNormals {
     /// Every corner names a normal, and each position always the same one.
     Consistent,
     /// No corner names a normal.
-    None,
+    Absent,
     /// Some corners name one and others do not, or a position was given two normals: the
     /// normals do not map one-to-one onto positions, so they are dropped.
     Inconsistent,
@@ -40,7 +40,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh, MeshError>
     }
     let normals = match reader.corners {
         CornerNormals::Consistent => per_position(&reader.normal_of, &reader.normals),
-        CornerNormals::NoCorners | CornerNormals::None => {
+        CornerNormals::NoCorners | CornerNormals::Absent => {
             by_order(reader.normal_of.len(), reader.normals)
         }
         CornerNormals::Inconsistent => None,
@@ -109,8 +109,8 @@ fn note_corner(state: CornerNormals, named: &mut u32, normal: Option<u32>) -> Co
     use CornerNormals::*;
     match (state, normal) {
         (Inconsistent, _) => Inconsistent,
-        (NoCorners | None, Option::None) => None,
-        (None, Some(_)) | (Consistent, Option::None) => Inconsistent,
+        (NoCorners | Absent, None) => Absent,
+        (Absent, Some(_)) | (Consistent, None) => Inconsistent,
         (NoCorners | Consistent, Some(n)) => {
             if *named == UNNAMED || *named == n {
                 *named = n;
