@@ -77,8 +77,13 @@ struct AeArgs {
     split: String,
     #[arg(long, default_value = "dev")]
     eval_split: String,
+    /// Length of the run: the learning-rate schedule spans this many steps.
     #[arg(long, default_value_t = 10_000)]
     steps: u64,
+    /// End this session at this step (checkpointed; continue later with --resume). The
+    /// schedule still spans --steps.
+    #[arg(long)]
+    stop_at: Option<u64>,
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
     #[arg(long, default_value_t = 200)]
@@ -182,11 +187,11 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
     counts.sort();
     eprintln!("parameters by optimizer: {counts:?}");
     let stop = stop_flag_on_ctrl_c();
-    let summary = trainer.run(&stop, !args.no_progress)?;
+    let summary = trainer.run(&stop, args.stop_at, !args.no_progress)?;
     let state = &summary.state;
     eprintln!(
         "{} at step {} after {:.0} s of training; checkpoint in {}",
-        if summary.interrupted { "stopped" } else { "finished" },
+        if summary.interrupted || state.step < args.steps { "stopped" } else { "finished" },
         state.step,
         state.elapsed_s,
         RunDir(args.out.clone()).checkpoint().display()

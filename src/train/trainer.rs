@@ -54,6 +54,7 @@ pub struct TrainConfig {
 #[derive(Debug, Clone)]
 pub struct RunSummary {
     pub state: TrainState,
+    /// Stopped by Ctrl-C.
     pub interrupted: bool,
     pub last_eval: Option<EvalReport>,
 }
@@ -188,7 +189,16 @@ impl Trainer {
     /// Trains until the configured step count, or until `stop` is set (Ctrl-C); checkpoints
     /// every `checkpoint_every` steps and at the end, evaluates every `eval_every` steps and
     /// at the end, and keeps the best export by evaluation Chamfer distance.
-    pub fn run(&mut self, stop: &AtomicBool, progress: bool) -> Result<RunSummary, TrainError> {
+    ///
+    /// `stop_at` ends this session early at that step (checkpointed, to be resumed), without
+    /// changing the schedule, which always spans the configured step count.
+    pub fn run(
+        &mut self,
+        stop: &AtomicBool,
+        stop_at: Option<u64>,
+        progress: bool,
+    ) -> Result<RunSummary, TrainError> {
+        let end = stop_at.map_or(self.cfg.steps, |s| s.min(self.cfg.steps));
         let source = BatchSource::new(self.train_data.clone(), self.cfg.batch.clone());
         let accumulate = self.cfg.accumulate.max(1) as u64;
         let prefetch = Prefetcher::spawn(source, self.state.step * accumulate, 4);
@@ -198,7 +208,7 @@ impl Trainer {
         let vars: Vec<Var> = self.varmap.all_vars();
         let mut last_eval = None;
         let mut interrupted = false;
-        while self.state.step < self.cfg.steps {
+        while self.state.step < end {
             if stop.load(Ordering::SeqCst) {
                 interrupted = true;
                 break;
@@ -257,7 +267,7 @@ impl Trainer {
             bar.set_position(self.state.step);
             bar.set_message(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"));
             let step = self.state.step;
-            if step % self.cfg.eval_every.max(1) == 0 || step == self.cfg.steps {
+            if step % self.cfg.eval_every.max(1) == 0 || step == end {
                 let report = bar.suspend(|| self.evaluate_and_keep_best())?;
                 bar.println(eval_line(step, &report));
                 last_eval = Some(report);
