@@ -75,6 +75,6 @@ pub use input::PointCloudInput;
 pub use sampling::{Sampler, SamplingParams};
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
-pub type FaceToken = [u16; 9];
+pub use crate::tokenize::FaceToken;
 
 pub type Result<T, E = ModelError> = std::result::Result<T, E>;
