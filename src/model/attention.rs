@@ -101,7 +101,8 @@ impl Dense {
     }
 }
 
-/// Two linear layers with a GELU between.
+/// Two linear layers with a SiLU between (candle's GELU kernels cost ten times as much on the
+/// CPU, a visible share of a decode step).
 #[derive(Debug, Clone)]
 pub struct Mlp {
     fc1: Dense,
@@ -117,7 +118,7 @@ impl Mlp {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.fc2.forward(&self.fc1.forward(x)?.gelu()?)
+        self.fc2.forward(&self.fc1.forward(x)?.silu()?)
     }
 }
 

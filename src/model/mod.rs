@@ -26,7 +26,7 @@
 //!   has no positions (a point set has no order). Learned positions were not tried.
 //! - The CausalMLP's sub-heads reuse the decoder's 9 per-slot coordinate embedding tables for
 //!   the coordinates already chosen; sub-head j is an MLP on [h ; e_0 .. e_{j-1}].
-//! - Pre-norm LayerNorm blocks, GELU MLPs, no biases in attention projections.
+//! - Pre-norm LayerNorm blocks, SiLU MLPs, no biases in attention projections.
 //! - Weight names (the checkpoint format): `encoder.{point_embed, query_block.*, layers.N.*,
 //!   norm, bottleneck}`, `decoder.{coord_embed, face_pooling.fc1/fc2, start, latent_up,
 //!   layers.N.{self_norm, self_attn.qkv/out, cross_norm, cross_attn.q/kv/out, mlp_norm,
@@ -75,6 +75,6 @@ pub use input::PointCloudInput;
 pub use sampling::{Sampler, SamplingParams};
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
-pub type FaceToken = [u16; 9];
+pub use crate::tokenize::FaceToken;
 
 pub type Result<T, E = ModelError> = std::result::Result<T, E>;
