@@ -25,7 +25,7 @@ pub struct EvalSet {
 }
 
 /// Seed of the held-aside procedural shapes: far from any training seed a user would pick.
-pub const HELD_OUT_PROCEDURAL_SEED: u64 = 0x5EED_0F_E7A1;
+pub const HELD_OUT_PROCEDURAL_SEED: u64 = 0x005E_ED0F_E7A1;
 
 impl EvalSet {
     /// The first `from_folder` meshes of `folder` (in name order) and `procedural` held-aside

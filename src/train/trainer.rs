@@ -267,12 +267,12 @@ impl Trainer {
             bar.set_position(self.state.step);
             bar.set_message(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"));
             let step = self.state.step;
-            if step % self.cfg.eval_every.max(1) == 0 || step == end {
+            if step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end {
                 let report = bar.suspend(|| self.evaluate_and_keep_best())?;
                 bar.println(eval_line(step, &report));
                 last_eval = Some(report);
             }
-            if step % self.cfg.checkpoint_every.max(1) == 0 {
+            if step.is_multiple_of(self.cfg.checkpoint_every.max(1)) {
                 self.save_checkpoint()?;
             }
         }
