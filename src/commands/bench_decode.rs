@@ -6,8 +6,8 @@ use std::time::Instant;
 use anyhow::Context;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use comfy_table::Table;
-use meshstream::mesh::farthest_point_sampling;
+use meshstream::mesh::primitives::uv_sphere;
+use meshstream::mesh::{farthest_point_sampling, sample_surface};
 use meshstream::model::{
     BaselineState, CoordinateBaseline, FaceConfig, FaceModel, GenerateOptions, Generation,
     SamplingParams, checkpoint, parse_device, step_generations,
@@ -30,19 +30,6 @@ pub struct DecodeBenchArgs {
     /// Face counts at which FACE and the per-coordinate baseline are compared.
     #[arg(long, value_delimiter = ',', default_values_t = vec![200, 800])]
     pub compare: Vec<usize>,
-}
-
-/// Points of a Fibonacci sphere with their normals: a deterministic stand-in point cloud.
-fn sphere_cloud(n: usize) -> Vec<[f32; 3]> {
-    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    (0..n)
-        .map(|i| {
-            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-            let r = (1.0 - y * y).sqrt();
-            let t = golden * i as f32;
-            [r * t.cos(), y, r * t.sin()]
-        })
-        .collect()
 }
 
 fn random_weights(
@@ -122,7 +109,9 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
     );
 
     // Encoding: FPS on the CPU, then the encoder.
-    let cloud = sphere_cloud(cfg.num_points);
+    // Points on a unit sphere; their positions double as normals (random weights, so only
+    // the shapes of the tensors matter).
+    let cloud = sample_surface(&uv_sphere(1.0, 64, 32), cfg.num_points, 0)?.vertices;
     let flat: Vec<f32> = cloud.iter().flatten().copied().collect();
     let points = Tensor::from_vec(flat, (1, cfg.num_points, 3), &device)?;
     let encode = || -> anyhow::Result<(f64, f64, Tensor)> {
@@ -141,7 +130,7 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
     let (fps, total) = runs.iter().fold((f64::MAX, f64::MAX), |(a, b), r| (a.min(r.0), b.min(r.1)));
     let latents = runs[0].2.clone();
 
-    let mut table = Table::new();
+    let mut table = super::table();
     table.set_header(vec!["measurement", "result"]);
     table.add_row(vec![
         format!(

@@ -1,0 +1,108 @@
+//! The `meshstream` binary end to end: stats, convert, sample and eval on real files.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use meshstream::mesh::primitives::{cuboid, uv_sphere};
+use meshstream::mesh::{Format, ReadLimits, read_mesh_file, write_mesh_file};
+
+fn meshstream(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_meshstream")).args(args).output().unwrap()
+}
+
+fn ok_json(args: &[&str]) -> serde_json::Value {
+    let out = meshstream(args);
+    assert!(out.status.success(), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+fn path(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn stats_reports_sequence_lengths_for_files_and_folders() {
+    let dir = tempfile::tempdir().unwrap();
+    write_mesh_file(&cuboid([1.0, 2.0, 3.0]), &dir.path().join("box.obj"), None).unwrap();
+    write_mesh_file(&uv_sphere(1.0, 16, 8), &dir.path().join("ball.glb"), None).unwrap();
+    std::fs::write(dir.path().join("junk.stl"), b"solid nothing\nfacet normal").unwrap();
+    let v = ok_json(&["stats", path(dir.path()), "--json"]);
+    let meshes = v["meshes"].as_array().unwrap();
+    assert_eq!(meshes.len(), 2);
+    let b = meshes.iter().find(|m| m["name"] == "box.obj").unwrap();
+    assert_eq!(b["faces"], 12);
+    assert_eq!(b["face_sequence_len"], 12);
+    assert_eq!(b["per_coordinate_len"], 108);
+    assert_eq!(v["summary"]["meshes"], 3);
+    assert_eq!(v["summary"]["failures"], 1, "the unreadable file is counted");
+    assert!((v["summary"]["compression_ratio"].as_f64().unwrap() - 1.0 / 9.0).abs() < 1e-9);
+}
+
+#[test]
+fn convert_round_trips_between_formats_and_quantize_snaps_in_place() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = dir.path().join("ball.ply");
+    let ball = uv_sphere(5.0, 32, 16).translated([100.0, 0.0, 0.0]);
+    write_mesh_file(&ball, &src, None).unwrap();
+    for ext in ["obj", "stl", "glb", "ply"] {
+        let out = dir.path().join(format!("out.{ext}"));
+        let o = meshstream(&["convert", path(&src), path(&out)]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let back = read_mesh_file(&out, &ReadLimits::default()).unwrap();
+        assert_eq!(back.faces.len(), ball.faces.len(), "{ext}");
+    }
+    let snapped = dir.path().join("snapped.obj");
+    let o = meshstream(&["convert", path(&src), path(&snapped), "--quantize", "128"]);
+    assert!(o.status.success());
+    let back = read_mesh_file(&snapped, &ReadLimits::default()).unwrap();
+    let (lo, hi) = back.bounds().unwrap();
+    // Still in the caller's coordinates: the sphere around x = 100 with radius 5.
+    assert!((lo[0] - 95.0).abs() < 0.1 && (hi[0] - 105.0).abs() < 0.1, "{lo:?} {hi:?}");
+    let bad = meshstream(&["convert", path(&src), path(&snapped), "--quantize", "7"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("128"));
+}
+
+#[test]
+fn sample_writes_points_with_normals() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = dir.path().join("box.stl");
+    write_mesh_file(&cuboid([2.0; 3]), &src, None).unwrap();
+    let out = dir.path().join("points.ply");
+    let o = meshstream(&["sample", path(&src), "-n", "500", "-o", path(&out)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cloud = read_mesh_file(&out, &ReadLimits::default()).unwrap();
+    assert!(cloud.is_point_cloud());
+    assert_eq!(cloud.vertices.len(), 500);
+    assert_eq!(cloud.normals.unwrap().len(), 500);
+}
+
+#[test]
+fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
+    let dir = tempfile::tempdir().unwrap();
+    let (gt, pred) = (dir.path().join("gt"), dir.path().join("pred"));
+    std::fs::create_dir_all(&gt).unwrap();
+    std::fs::create_dir_all(&pred).unwrap();
+    let cube = cuboid([2.0; 3]);
+    for name in ["a", "b", "c"] {
+        write_mesh_file(&cube, &gt.join(format!("{name}.ply")), None).unwrap();
+    }
+    // a: the cube shifted by 0.1 (known answer); b: a point cloud (no faces); c: missing.
+    write_mesh_file(&cube.clone().translated([0.1, 0.0, 0.0]), &gt.join("../pred/a.obj"), None)
+        .unwrap();
+    let mut cloud = cube.clone();
+    cloud.faces.clear();
+    write_mesh_file(&cloud, &pred.join("b.ply"), Some(Format::Ply)).unwrap();
+    let v = ok_json(&["eval", "--pred", path(&pred), "--gt", path(&gt), "--json"]);
+    let s = &v["summary"];
+    assert_eq!(s["count"], 3);
+    assert_eq!(s["evaluated"], 1);
+    assert_eq!(s["failures"], 2);
+    let a = &v["meshes"][0];
+    // A cube of side 2 shifted by 0.1: the Hausdorff distance is exactly the shift.
+    assert!((a["hausdorff"].as_f64().unwrap() - 0.1).abs() < 0.03, "{a}");
+    let failures: Vec<&str> =
+        v["meshes"].as_array().unwrap().iter().filter_map(|m| m["failure"].as_str()).collect();
+    assert_eq!(failures.len(), 2);
+    assert!(failures.iter().any(|f| f.contains("missing")));
+}
