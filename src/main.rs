@@ -25,6 +25,8 @@ enum Command {
     Convert(commands::convert::ConvertArgs),
     /// Sample points with normals uniformly by area on a mesh's surface.
     Sample(commands::sample::SampleArgs),
+    /// Reconstruct a clean mesh from a point cloud or a dense mesh with a FACE model.
+    Reconstruct(commands::reconstruct::ReconstructArgs),
     /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
     Eval(commands::eval::EvalArgs),
     /// Benchmarks that print a table (run them in a release build).
@@ -38,6 +40,7 @@ fn main() -> anyhow::Result<()> {
         Command::Convert(args) => commands::convert::run(&args),
         Command::Sample(args) => commands::sample::run(&args),
         Command::Eval(args) => commands::eval::run(&args),
+        Command::Reconstruct(args) => commands::reconstruct::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }

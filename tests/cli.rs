@@ -106,3 +106,39 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
     assert_eq!(failures.len(), 2);
     assert!(failures.iter().any(|f| f.contains("missing")));
 }
+
+#[test]
+fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
+    use candle_core::{DType, Device};
+    use candle_nn::{VarBuilder, VarMap};
+    use meshstream::model::{FaceConfig, FaceModel, checkpoint};
+
+    let dir = tempfile::tempdir().unwrap();
+    // Random weights: the faces are arbitrary, but the path points -> latents -> faces -> mesh
+    // in the caller's frame is the one a trained model takes.
+    let mut cfg = FaceConfig::tiny();
+    cfg.max_faces = 30;
+    let varmap = VarMap::new();
+    FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu)).unwrap();
+    let model = dir.path().join("model");
+    checkpoint::save(&model, &cfg, &varmap).unwrap();
+
+    let input = dir.path().join("box.obj");
+    let offset = [100.0, -20.0, 5.0];
+    write_mesh_file(&cuboid([10.0, 4.0, 2.0]).translated(offset), &input, None).unwrap();
+    let out = dir.path().join("out.glb");
+    let o = meshstream(&["reconstruct", path(&input), "-o", path(&out), "--model", path(&model)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mesh = read_mesh_file(&out, &ReadLimits::default()).unwrap();
+    assert!(!mesh.faces.is_empty() && mesh.faces.len() <= 30);
+    let (lo, hi) = mesh.bounds().unwrap();
+    for a in 0..3 {
+        // Within the input's bounding cube (half the longest side, 5, around its centre).
+        assert!(lo[a] >= offset[a] - 5.01 && hi[a] <= offset[a] + 5.01, "{lo:?} {hi:?}");
+    }
+
+    let missing =
+        meshstream(&["reconstruct", path(&input), "-o", path(&out), "--model", "/no/model"]);
+    assert!(!missing.status.success());
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("/no/model"));
+}

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_decode;
 pub mod convert;
 pub mod eval;
+pub mod reconstruct;
 pub mod sample;
 pub mod stats;
 

@@ -11,6 +11,7 @@ mod limits;
 mod normalize;
 mod obj;
 mod ply;
+mod points;
 pub mod primitives;
 mod sample;
 mod stl;
@@ -23,6 +24,7 @@ pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file}
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
 pub use normalize::Normalization;
+pub use points::{NORMAL_NEIGHBOURS, encoder_points, estimate_normals};
 pub use sample::sample_surface;
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
