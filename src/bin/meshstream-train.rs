@@ -196,8 +196,8 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
         state.elapsed_s,
         RunDir(args.out.clone()).checkpoint().display()
     );
-    if let Some(report) = &summary.last_eval {
-        eprintln!("{}", eval_line(state.step, report));
+    if let Some((step, report)) = &summary.last_eval {
+        eprintln!("{}", eval_line(*step, report));
     }
     Ok(())
 }

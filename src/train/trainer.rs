@@ -56,7 +56,8 @@ pub struct RunSummary {
     pub state: TrainState,
     /// Stopped by Ctrl-C.
     pub interrupted: bool,
-    pub last_eval: Option<EvalReport>,
+    /// The last evaluation of this session and the step it was made at.
+    pub last_eval: Option<(u64, EvalReport)>,
 }
 
 pub struct Trainer {
@@ -270,7 +271,7 @@ impl Trainer {
             if step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end {
                 let report = bar.suspend(|| self.evaluate_and_keep_best())?;
                 bar.println(eval_line(step, &report));
-                last_eval = Some(report);
+                last_eval = Some((step, report));
             }
             if step.is_multiple_of(self.cfg.checkpoint_every.max(1)) {
                 self.save_checkpoint()?;

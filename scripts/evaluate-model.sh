@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Reconstructs every mesh of the lowpoly dev split and of famous-dev from points sampled on
+# its surface, then scores the results against the ground truth with `meshstream eval`
+# (DESIGN.md's CD/HD). Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+model=${1:-models/default}
+out=${2:-target/eval}
+data=../shared/data
+bin="${CARGO_TARGET_DIR:-target}/release/meshstream"
+cargo build --release --quiet --bin meshstream
+
+mkdir -p "$out/dev-gt" "$out/dev-pred" "$out/famous-pred"
+# The dev split of the low-poly set, linked into one folder so eval pairs them by name.
+awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | while read -r f; do
+  ln -sf "$(realpath "$data/lowpoly/$f")" "$out/dev-gt/$f"
+done
+for gt_dir in "$out/dev-gt" "$data/famous-dev"; do
+  pred_dir=$([ "$gt_dir" = "$out/dev-gt" ] && echo "$out/dev-pred" || echo "$out/famous-pred")
+  for f in "$gt_dir"/*.ply; do
+    name=$(basename "$f" .ply)
+    RAYON_NUM_THREADS=1 "$bin" reconstruct "$f" -o "$pred_dir/$name.glb" --model "$model" 2>/dev/null \
+      || echo "no reconstruction for $name" >&2
+  done
+done
+echo "== lowpoly dev split"
+"$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | tail -n 5
+echo "== famous-dev"
+"$bin" eval --pred "$out/famous-pred" --gt "$data/famous-dev"
