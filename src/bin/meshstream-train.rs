@@ -101,6 +101,10 @@ struct AeArgs {
     /// Face positions per batch.
     #[arg(long, default_value_t = 1200)]
     batch_faces: usize,
+    /// Padding allowed per forward pass, as a fraction of its real face positions: a batch
+    /// runs as groups of similar lengths.
+    #[arg(long, default_value_t = 0.25)]
+    max_padding: f64,
     /// Fraction of samples drawn from the procedural shape generator.
     #[arg(long, default_value_t = 0.5)]
     procedural_ratio: f32,
@@ -229,6 +233,7 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
             curriculum: parse_curriculum(&args.curriculum)?,
             max_faces: model.max_faces,
             seed: args.seed,
+            max_padding: args.max_padding,
         },
         optim: OptimConfig { weight_decay: args.weight_decay, ..OptimConfig::default() },
         lr: args.lr,

@@ -89,6 +89,14 @@ pub struct BatchConfig {
     /// The model's face limit: the last stage never exceeds it.
     pub max_faces: usize,
     pub seed: u64,
+    /// Padding allowed inside one forward pass, as a fraction of its real positions: a batch
+    /// is run as groups of similar lengths so short meshes do not pay for the longest one.
+    #[serde(default = "default_max_padding")]
+    pub max_padding: f64,
+}
+
+fn default_max_padding() -> f64 {
+    0.25
 }
 
 impl BatchConfig {
@@ -110,6 +118,30 @@ impl Batch {
     /// Face positions the decoder processes: each sample's faces plus its end-of-mesh step.
     pub fn positions(&self) -> usize {
         self.samples.iter().map(|s| s.faces.len() + 1).sum()
+    }
+
+    /// The samples split into groups of similar length, each padded by at most `max_padding`
+    /// of its real positions (a single sample is always a group of its own).
+    pub fn length_groups(&self, max_padding: f64) -> Vec<Vec<&TrainingSample>> {
+        let mut order: Vec<&TrainingSample> = self.samples.iter().collect();
+        order.sort_by_key(|s| std::cmp::Reverse(s.faces.len()));
+        let mut groups: Vec<Vec<&TrainingSample>> = Vec::new();
+        let mut real = 0;
+        for sample in order {
+            let len = sample.faces.len() + 1;
+            if let Some(group) = groups.last_mut() {
+                // Sorted longest first, so the group's first sample sets its padded length.
+                let padded = (group.len() + 1) * (group[0].faces.len() + 1);
+                if padded as f64 <= (1.0 + max_padding) * (real + len) as f64 {
+                    group.push(sample);
+                    real += len;
+                    continue;
+                }
+            }
+            groups.push(vec![sample]);
+            real = len;
+        }
+        groups
     }
 }
 
@@ -229,6 +261,7 @@ mod tests {
             ],
             max_faces: 200,
             seed: 5,
+            max_padding: 0.25,
         }
     }
 
@@ -261,6 +294,25 @@ mod tests {
                 assert!(s.points.iter().flatten().all(|c| c.abs() <= 1.0 + 1e-5));
             }
         }
+    }
+
+    #[test]
+    fn length_groups_bound_padding_and_keep_every_sample() {
+        let source = BatchSource::new(None, config(2000));
+        let batch = source.batch(20).unwrap();
+        assert!(batch.samples.len() > 4, "{} samples", batch.samples.len());
+        let groups = batch.length_groups(0.25);
+        let mut names: Vec<_> = groups.iter().flatten().map(|s| &s.name).collect();
+        let mut expected: Vec<_> = batch.samples.iter().map(|s| &s.name).collect();
+        names.sort();
+        expected.sort();
+        assert_eq!(names, expected);
+        for group in &groups {
+            let longest = group.iter().map(|s| s.faces.len() + 1).max().unwrap();
+            let real: usize = group.iter().map(|s| s.faces.len() + 1).sum();
+            assert!((group.len() * longest) as f64 <= 1.25 * real as f64 + 1e-9);
+        }
+        assert_eq!(batch.length_groups(f64::INFINITY).len(), 1);
     }
 
     #[test]

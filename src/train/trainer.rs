@@ -219,21 +219,30 @@ impl Trainer {
             let (mut loss, mut coord_loss, mut positions, mut meshes) = (0.0, 0.0, 0, 0);
             for _ in 0..accumulate {
                 let batch = prefetch.next_batch().ok_or(TrainError::DataStopped)??;
-                let examples: Vec<_> = batch.samples.iter().map(super::evaluate::example).collect();
-                let tensors = TrainBatch::new(&examples, &self.device)?;
-                let out = self.model.loss(&tensors)?;
-                loss += f64::from(out.total.to_scalar::<f32>()?) / accumulate as f64;
-                coord_loss += f64::from(out.coords.to_scalar::<f32>()?) / accumulate as f64;
-                positions += batch.positions();
+                let batch_positions = batch.positions();
+                for group in batch.length_groups(self.cfg.batch.max_padding) {
+                    let examples: Vec<_> =
+                        group.iter().map(|s| super::evaluate::example(s)).collect();
+                    let tensors = TrainBatch::new(&examples, &self.device)?;
+                    let out = self.model.loss(&tensors)?;
+                    // Each group's loss is a mean over its positions; weighted by its share,
+                    // the sum is the mean over the whole step's positions.
+                    let group_positions: usize = group.iter().map(|s| s.faces.len() + 1).sum();
+                    let weight =
+                        group_positions as f64 / batch_positions as f64 / accumulate as f64;
+                    loss += f64::from(out.total.to_scalar::<f32>()?) * weight;
+                    coord_loss += f64::from(out.coords.to_scalar::<f32>()?) * weight;
+                    let step_grads = (out.total * weight)?.backward()?;
+                    grads = Some(match grads {
+                        None => step_grads,
+                        Some(mut acc) => {
+                            add_grads(&mut acc, &step_grads, &vars)?;
+                            acc
+                        }
+                    });
+                }
+                positions += batch_positions;
                 meshes += batch.samples.len();
-                let step_grads = (out.total / accumulate as f64)?.backward()?;
-                grads = Some(match grads {
-                    None => step_grads,
-                    Some(mut acc) => {
-                        add_grads(&mut acc, &step_grads, &vars)?;
-                        acc
-                    }
-                });
             }
             let mut grads = grads.ok_or(TrainError::DataStopped)?;
             let grad_norm = clip_grad_norm(&mut grads, &vars, self.cfg.grad_clip)?;
