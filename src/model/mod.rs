@@ -57,7 +57,7 @@ mod input;
 mod ragged;
 mod sampling;
 #[cfg(test)]
-mod testing;
+pub(crate) mod testing;
 
 pub use baseline::{BaselineState, CoordinateBaseline};
 pub use batch::{TrainBatch, TrainExample};

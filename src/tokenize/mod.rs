@@ -16,4 +16,6 @@ pub use per_coordinate::{
     SequenceStats, faces_from_per_coordinate, per_coordinate_tokens, sequence_stats,
 };
 pub use quantize::{DEFAULT_LEVELS, MAX_LEVELS, MIN_LEVELS, Quantizer};
-pub use tokens::{Tokenized, detokenize, is_canonical_sequence, tokenize, tokenize_mesh};
+pub use tokens::{
+    Tokenized, detokenize, face_positions, is_canonical_sequence, tokenize, tokenize_mesh,
+};

@@ -4,7 +4,7 @@ use std::collections::{HashMap, HashSet};
 
 use crate::mesh::{Mesh, Normalization};
 
-use super::order::{face_vertices, swap_xz, vertex_set_key};
+use super::order::{ZyxVertex, face_vertices, swap_xz, vertex_set_key};
 use super::{FaceToken, Quantizer, TokenizeError, canonical_face, is_canonical_face};
 
 /// A mesh as its canonical face sequence, with what the tokenizer removed on the way.
@@ -85,7 +85,7 @@ pub fn detokenize(faces: &[FaceToken], q: Quantizer) -> Mesh {
         let corners = face_vertices(face).map(|zyx| {
             let zyx = zyx.map(|c| c.min(last));
             *index.entry(zyx).or_insert_with(|| {
-                vertices.push(swap_xz(zyx).map(|c| q.dequantize(c)));
+                vertices.push(corner_position(zyx, q));
                 // Saturating only matters past 2^32 distinct vertices, i.e. more than 1.4e9
                 // faces (25 GB of tokens): far beyond any configured face limit.
                 u32::try_from(vertices.len() - 1).unwrap_or(u32::MAX)
@@ -94,6 +94,17 @@ pub fn detokenize(faces: &[FaceToken], q: Quantizer) -> Mesh {
         mesh_faces.push(corners);
     }
     Mesh::new(vertices, mesh_faces)
+}
+
+/// The three corners of a face in the normalized frame, (x, y, z) each, as [`detokenize`]
+/// places them.
+pub fn face_positions(face: &FaceToken, q: Quantizer) -> [[f32; 3]; 3] {
+    let last = q.levels() - 1;
+    face_vertices(face).map(|zyx| corner_position(zyx.map(|c| c.min(last)), q))
+}
+
+fn corner_position(zyx: ZyxVertex, q: Quantizer) -> [f32; 3] {
+    swap_xz(zyx).map(|c| q.dequantize(c))
 }
 
 /// Every face canonical, faces strictly increasing in ZYX order, and no two faces on the same

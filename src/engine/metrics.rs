@@ -1,0 +1,126 @@
+//! Prometheus metrics of the engine and of the interfaces in front of it, in one registry.
+
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+type ByReason = Family<Vec<(&'static str, &'static str)>, Counter>;
+
+pub struct Metrics {
+    registry: Registry,
+    pub queue_depth: Gauge,
+    pub running_sequences: Gauge,
+    pub faces_generated: Counter,
+    pub time_to_first_face: Histogram,
+    pub time_between_faces: Histogram,
+    pub request_duration: Histogram,
+    pub batch_size: Histogram,
+    rejections: ByReason,
+    failures: ByReason,
+    finished: ByReason,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let mut registry = Registry::with_prefix("meshstream");
+        let m = Self {
+            queue_depth: Gauge::default(),
+            running_sequences: Gauge::default(),
+            faces_generated: Counter::default(),
+            time_to_first_face: Histogram::new(exponential_buckets(0.005, 2.0, 14)),
+            time_between_faces: Histogram::new(exponential_buckets(0.0002, 2.0, 14)),
+            request_duration: Histogram::new(exponential_buckets(0.01, 2.0, 14)),
+            batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            rejections: ByReason::default(),
+            failures: ByReason::default(),
+            finished: ByReason::default(),
+            registry: Registry::default(),
+        };
+        registry.register("queue_depth", "Requests waiting to start", m.queue_depth.clone());
+        registry.register(
+            "running_sequences",
+            "Sequences being decoded",
+            m.running_sequences.clone(),
+        );
+        registry.register("faces_generated", "Faces decoded", m.faces_generated.clone());
+        registry.register(
+            "time_to_first_face_seconds",
+            "From a request's admission to the queue to its first face",
+            m.time_to_first_face.clone(),
+        );
+        registry.register(
+            "time_between_faces_seconds",
+            "Between consecutive faces of one request",
+            m.time_between_faces.clone(),
+        );
+        registry.register(
+            "request_duration_seconds",
+            "From admission to the queue to the last event",
+            m.request_duration.clone(),
+        );
+        registry.register(
+            "batch_size",
+            "Sequences stepped together in one decode iteration",
+            m.batch_size.clone(),
+        );
+        registry.register(
+            "requests_rejected",
+            "Requests refused before they started, by reason",
+            m.rejections.clone(),
+        );
+        registry.register(
+            "requests_failed",
+            "Requests that started and then failed, by reason",
+            m.failures.clone(),
+        );
+        registry.register(
+            "requests_finished",
+            "Requests that completed, by why decoding stopped",
+            m.finished.clone(),
+        );
+        Self { registry, ..m }
+    }
+}
+
+impl Metrics {
+    pub fn reject(&self, reason: &'static str) {
+        self.rejections.get_or_create(&vec![("reason", reason)]).inc();
+    }
+
+    pub fn fail(&self, reason: &'static str) {
+        self.failures.get_or_create(&vec![("reason", reason)]).inc();
+    }
+
+    pub fn finish(&self, reason: &'static str) {
+        self.finished.get_or_create(&vec![("reason", reason)]).inc();
+    }
+
+    /// The Prometheus text exposition format.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        // Writing into a String cannot fail.
+        let _ = encode(&mut out, &self.registry);
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_render_in_the_text_format_with_labels() {
+        let m = Metrics::default();
+        m.reject("queue_full");
+        m.batch_size.observe(4.0);
+        m.faces_generated.inc_by(7);
+        let text = m.render();
+        assert!(text.contains("meshstream_requests_rejected_total{reason=\"queue_full\"} 1"));
+        assert!(text.contains("meshstream_faces_generated_total 7"));
+        assert!(text.contains("meshstream_batch_size_count 1"));
+        assert!(text.ends_with("# EOF\n"));
+    }
+}

@@ -1,0 +1,205 @@
+//! The inference engine: a bounded queue of requests and a continuous-batching scheduler on
+//! dedicated threads, shared by every interface (HTTP, gRPC, the CLI).
+//!
+//! ```text
+//! submit ──> queue ──admission──> encoder batch ──> running batch ──step──> faces ──> client
+//!   (429 when full)  (fits? aged?)   ("prefill")     (one face per row      (bounded channel;
+//!                                                      per iteration)        closed = cancel)
+//! ```
+//! Model work never runs on the async runtime: the scheduler has its own thread, and parts of
+//! the running batch are stepped in parallel on its own thread pool. A client's channel is
+//! bounded; a sequence whose client is behind is not stepped until it catches up, and a
+//! dropped [`RequestStream`] cancels its request before the next step.
+
+mod admission;
+mod config;
+mod error;
+mod metrics;
+mod request;
+mod scheduler;
+mod stream;
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use tokio::sync::mpsc;
+
+use crate::model::{FaceConfig, FaceModel};
+use crate::tokenize::Quantizer;
+
+pub use config::EngineConfig;
+pub use error::EngineError;
+pub use metrics::Metrics;
+pub use request::{Conditioning, DecodeOptions, PreparedPoints, Request};
+pub use stream::{Completed, Event, RequestStream, StreamedFace, Summary};
+
+use scheduler::{Pending, QueueState, Scheduler, Shared};
+
+/// What the engine is doing now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EngineStatus {
+    pub waiting: usize,
+    pub running: usize,
+    /// False once shutdown has begun.
+    pub accepting: bool,
+    /// False once the scheduler has stopped.
+    pub alive: bool,
+}
+
+/// A handle on a running engine; clones share it.
+#[derive(Clone)]
+pub struct Engine {
+    shared: Arc<Shared>,
+    model_config: Arc<FaceConfig>,
+    quantizer: Quantizer,
+    thread: Arc<Mutex<Option<JoinHandle<()>>>>,
+}
+
+impl Engine {
+    /// Starts the scheduler thread and its decode pool.
+    pub fn start(
+        model: FaceModel,
+        config: EngineConfig,
+        metrics: Arc<Metrics>,
+    ) -> Result<Self, EngineError> {
+        config.validate()?;
+        let model_config = Arc::new(model.config().clone());
+        let levels = u16::try_from(model_config.quant_levels)
+            .map_err(|_| EngineError::Model("quantization levels out of range".into()))?;
+        let quantizer = Quantizer::new(levels).map_err(|e| EngineError::Model(e.to_string()))?;
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads())
+            .thread_name(|i| format!("engine-decode-{i}"))
+            .build()
+            .map_err(|e| EngineError::Model(format!("cannot start the decode threads: {e}")))?;
+        let shared = Arc::new(Shared {
+            queue: Mutex::new(QueueState {
+                waiting: VecDeque::new(),
+                running: 0,
+                closing: None,
+                stopped: false,
+            }),
+            wake: Condvar::new(),
+            config,
+            metrics,
+        });
+        let scheduler = Scheduler::new(model, quantizer, Arc::clone(&shared), pool);
+        let thread = std::thread::Builder::new()
+            .name("engine-scheduler".into())
+            .spawn(move || scheduler.run())
+            .map_err(|e| EngineError::Model(format!("cannot start the scheduler: {e}")))?;
+        Ok(Self { shared, model_config, quantizer, thread: Arc::new(Mutex::new(Some(thread))) })
+    }
+
+    pub fn model_config(&self) -> &FaceConfig {
+        &self.model_config
+    }
+
+    pub fn config(&self) -> &EngineConfig {
+        &self.shared.config
+    }
+
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.shared.metrics
+    }
+
+    /// The largest face budget a request may ask for: the engine's limit or the model's,
+    /// whichever is smaller.
+    pub fn face_limit(&self) -> usize {
+        self.shared.config.max_faces_per_request.min(self.model_config.max_faces)
+    }
+
+    /// Queues a request; its faces arrive on the returned stream. Refused at once when the
+    /// queue is full or the engine is shutting down.
+    pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
+        let metrics = &self.shared.metrics;
+        let faces = self.check(&request).inspect_err(|e| metrics.reject(e.code()))?;
+        let (tx, rx) = mpsc::channel(self.shared.config.stream_buffer);
+        let stream = RequestStream::new(
+            request.id.clone(),
+            rx,
+            request.conditioning.normalization(),
+            self.quantizer,
+        );
+        let mut q = self.shared.lock();
+        let refused = if q.closing.is_some() || q.stopped {
+            Some(EngineError::ShuttingDown)
+        } else if q.waiting.len() >= self.shared.config.max_queue {
+            Some(EngineError::QueueFull(q.waiting.len()))
+        } else {
+            None
+        };
+        if let Some(e) = refused {
+            metrics.reject(e.code());
+            return Err(e);
+        }
+        q.waiting.push_back(Pending { request, tx, submitted: Instant::now(), faces });
+        metrics.queue_depth.set(q.waiting.len() as i64);
+        self.shared.wake.notify_one();
+        Ok(stream)
+    }
+
+    /// The request's face budget, after checking it against the limits and the model.
+    fn check(&self, request: &Request) -> Result<usize, EngineError> {
+        let limit = self.face_limit();
+        let faces = request.options.max_faces.unwrap_or(limit);
+        if faces == 0 || faces > limit {
+            return Err(EngineError::InvalidInput(format!(
+                "max_faces must be between 1 and {limit}, got {faces}"
+            )));
+        }
+        request
+            .options
+            .sampling
+            .validate()
+            .map_err(|e| EngineError::InvalidInput(e.to_string()))?;
+        let cfg = &self.model_config;
+        match &request.conditioning {
+            Conditioning::Points(p) => {
+                if p.points.len() != cfg.num_points
+                    || p.normals.len() != cfg.num_points
+                    || p.queries.len() != cfg.num_latents
+                    || p.queries.iter().any(|&i| i as usize >= p.points.len())
+                {
+                    return Err(EngineError::InvalidInput(format!(
+                        "prepared points do not match the model ({} points, {} queries)",
+                        cfg.num_points, cfg.num_latents
+                    )));
+                }
+            }
+        }
+        // A budget larger than the whole batch's could never be admitted.
+        Ok(faces.min(self.shared.config.max_batch_faces))
+    }
+
+    pub fn status(&self) -> EngineStatus {
+        let q = self.shared.lock();
+        EngineStatus {
+            waiting: q.waiting.len(),
+            running: q.running,
+            accepting: q.closing.is_none() && !q.stopped,
+            alive: !q.stopped,
+        }
+    }
+
+    /// Stops accepting requests; those already accepted may finish for `grace`, then fail.
+    pub fn shutdown(&self, grace: Duration) {
+        let mut q = self.shared.lock();
+        let deadline = Instant::now() + grace;
+        q.closing = Some(q.closing.map_or(deadline, |d| d.min(deadline)));
+        self.shared.wake.notify_all();
+    }
+
+    /// Waits for the scheduler to stop (after [`Engine::shutdown`]). Blocking.
+    pub fn join(&self) {
+        let handle = self.thread.lock().ok().and_then(|mut t| t.take());
+        if let Some(handle) = handle {
+            let _ = handle.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,356 @@
+//! The scheduler loop, on a thread of its own: admit waiting requests, run their stage before
+//! decoding together (the encoder is their "prefill"), then step every running sequence by one
+//! face, in parallel parts of the batch, and send each face to its client at once.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use candle_core::Tensor;
+use rayon::prelude::*;
+use tokio::sync::mpsc;
+
+use crate::mesh::Normalization;
+use crate::model::{FaceModel, FinishReason, GenerateOptions, Generation, step_generations};
+use crate::tokenize::{Quantizer, face_positions};
+
+use super::admission::{Candidate, Capacity, admit};
+use super::metrics::Metrics;
+use super::request::{Conditioning, PreparedPoints, Request};
+use super::stream::{Event, StreamedFace, Summary};
+use super::{EngineConfig, EngineError};
+
+/// Rows below which a part of the batch is not worth a thread of its own.
+const MIN_ROWS_PER_THREAD: usize = 4;
+
+/// A request accepted into the queue.
+pub(super) struct Pending {
+    pub request: Request,
+    pub tx: mpsc::Sender<Event>,
+    pub submitted: Instant,
+    /// The face budget it reserves once running.
+    pub faces: usize,
+}
+
+pub(super) struct QueueState {
+    pub waiting: VecDeque<Pending>,
+    pub running: usize,
+    /// Set by shutdown: nothing new is accepted, and whatever is unfinished then fails.
+    pub closing: Option<Instant>,
+    pub stopped: bool,
+}
+
+pub(super) struct Shared {
+    pub queue: Mutex<QueueState>,
+    pub wake: Condvar,
+    pub config: EngineConfig,
+    pub metrics: Arc<Metrics>,
+}
+
+impl Shared {
+    /// The queue, even if a thread panicked while holding it (its state stays consistent:
+    /// every change is a single push, pop or assignment).
+    pub fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.queue.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+}
+
+/// A sequence being decoded, and where its faces go.
+struct Active {
+    generation: Generation,
+    tx: mpsc::Sender<Event>,
+    normalization: Normalization,
+    faces_reserved: usize,
+    submitted: Instant,
+    queued: Duration,
+    prepare: Duration,
+    decode_start: Instant,
+    first_face: Option<Instant>,
+    last_face: Instant,
+    deadline: Option<Instant>,
+    done: bool,
+}
+
+impl Active {
+    fn finish(&mut self, event: Event) {
+        // The stepped rows always have room for a face and the final event (see `ready`).
+        let _ = self.tx.try_send(event);
+        self.done = true;
+    }
+
+    fn summary(&self, finish: FinishReason, now: Instant) -> Summary {
+        Summary {
+            faces: self.generation.faces().len(),
+            finish,
+            queued: self.queued,
+            prepare: self.prepare,
+            decode: now - self.decode_start,
+            time_to_first_face: self.first_face.map(|t| t - self.submitted),
+            total: now - self.submitted,
+        }
+    }
+
+    /// Stepped only when its client has room for one face and the final event.
+    fn ready(&self) -> bool {
+        self.tx.capacity() >= 2
+    }
+}
+
+pub(super) struct Scheduler {
+    model: FaceModel,
+    quantizer: Quantizer,
+    shared: Arc<Shared>,
+    pool: rayon::ThreadPool,
+    running: Vec<Active>,
+}
+
+impl Scheduler {
+    pub fn new(
+        model: FaceModel,
+        quantizer: Quantizer,
+        shared: Arc<Shared>,
+        pool: rayon::ThreadPool,
+    ) -> Self {
+        Self { model, quantizer, shared, pool, running: Vec::new() }
+    }
+
+    pub fn run(mut self) {
+        while let Some(admitted) = self.next_admissions() {
+            self.start(admitted);
+            self.step();
+        }
+        for a in &mut self.running {
+            a.finish(Event::Failed(EngineError::ShuttingDown));
+            self.shared.metrics.fail("shutting_down");
+        }
+        self.running.clear();
+        let mut q = self.shared.lock();
+        q.running = 0;
+        q.stopped = true;
+        self.shared.metrics.running_sequences.set(0);
+    }
+
+    /// Requests to start now; waits while there is nothing to do; `None` when the engine has
+    /// shut down.
+    fn next_admissions(&mut self) -> Option<Vec<Pending>> {
+        let shared = Arc::clone(&self.shared);
+        let cfg = &shared.config;
+        let metrics = &shared.metrics;
+        let mut q = shared.lock();
+        loop {
+            let now = Instant::now();
+            let past_deadline = q.closing.is_some_and(|t| now >= t);
+            q.waiting.retain(|p| {
+                let waited = now - p.submitted;
+                let failure = if p.tx.is_closed() {
+                    Some(None)
+                } else if past_deadline {
+                    Some(Some(EngineError::ShuttingDown))
+                } else if waited >= cfg.queue_timeout {
+                    Some(Some(EngineError::QueueTimeout(waited)))
+                } else {
+                    None
+                };
+                match failure {
+                    None => true,
+                    Some(error) => {
+                        metrics.reject(error.as_ref().map_or("cancelled", EngineError::code));
+                        if let Some(error) = error {
+                            let _ = p.tx.try_send(Event::Failed(error));
+                        }
+                        false
+                    }
+                }
+            });
+            if past_deadline {
+                for a in &mut self.running {
+                    a.finish(Event::Failed(EngineError::ShuttingDown));
+                    metrics.fail("shutting_down");
+                }
+                self.running.clear();
+            }
+            q.running = self.running.len();
+            metrics.running_sequences.set(self.running.len() as i64);
+            metrics.queue_depth.set(q.waiting.len() as i64);
+            if self.running.is_empty() && q.waiting.is_empty() {
+                if q.closing.is_some() {
+                    return None;
+                }
+                q = shared.wake.wait(q).unwrap_or_else(|poisoned| poisoned.into_inner());
+                continue;
+            }
+            let reserved: usize = self.running.iter().map(|a| a.faces_reserved).sum();
+            let free = Capacity {
+                slots: cfg.max_running.saturating_sub(self.running.len()),
+                faces: cfg.max_batch_faces.saturating_sub(reserved),
+                starts: cfg.max_encodes_per_iteration,
+            };
+            let candidates: Vec<Candidate> = q
+                .waiting
+                .iter()
+                .map(|p| Candidate { faces: p.faces, waited: now - p.submitted })
+                .collect();
+            let picked = admit(&candidates, free, cfg.aging);
+            // Remove from the back so earlier indices stay valid, then restore queue order.
+            let mut admitted: Vec<Pending> =
+                picked.iter().rev().filter_map(|&i| q.waiting.remove(i)).collect();
+            admitted.reverse();
+            metrics.queue_depth.set(q.waiting.len() as i64);
+            return Some(admitted);
+        }
+    }
+
+    /// Encodes the admitted requests in one batch and adds them to the running sequences.
+    fn start(&mut self, admitted: Vec<Pending>) {
+        if admitted.is_empty() {
+            return;
+        }
+        let t0 = Instant::now();
+        let clouds: Vec<&PreparedPoints> = admitted
+            .iter()
+            .map(|p| match &p.request.conditioning {
+                Conditioning::Points(points) => points,
+            })
+            .collect();
+        let latents = self.pool.install(|| encode_batch(&self.model, &clouds));
+        let prepare = t0.elapsed();
+        for (i, p) in admitted.into_iter().enumerate() {
+            let started = latents.as_ref().map_err(Clone::clone).and_then(|l| {
+                let options = GenerateOptions {
+                    sampling: p.request.options.sampling.clone(),
+                    max_faces: p.faces,
+                    ..GenerateOptions::default()
+                };
+                Ok(Generation::new(&self.model, &l.get(i)?, options)?)
+            });
+            match started {
+                Ok(generation) => self.running.push(Active {
+                    generation,
+                    normalization: p.request.conditioning.normalization(),
+                    faces_reserved: p.faces,
+                    queued: t0 - p.submitted,
+                    prepare,
+                    decode_start: Instant::now(),
+                    first_face: None,
+                    last_face: Instant::now(),
+                    deadline: p.request.deadline,
+                    submitted: p.submitted,
+                    tx: p.tx,
+                    done: false,
+                }),
+                Err(e) => {
+                    self.shared.metrics.fail(e.code());
+                    let _ = p.tx.try_send(Event::Failed(e));
+                }
+            }
+        }
+    }
+
+    /// One face for every running sequence whose client has room; finished, cancelled and
+    /// expired sequences leave the batch at once.
+    fn step(&mut self) {
+        let metrics = Arc::clone(&self.shared.metrics);
+        let now = Instant::now();
+        for a in &mut self.running {
+            if a.tx.is_closed() {
+                a.generation.cancel();
+                a.done = true;
+                metrics.finish("cancelled");
+            } else if a.deadline.is_some_and(|d| now >= d) {
+                a.finish(Event::Failed(EngineError::DeadlineExceeded(a.generation.faces().len())));
+                metrics.fail("deadline_exceeded");
+            }
+        }
+        self.running.retain(|a| !a.done);
+        let mut rows: Vec<&mut Active> = self.running.iter_mut().filter(|a| a.ready()).collect();
+        if rows.is_empty() {
+            if !self.running.is_empty() {
+                // Every client is behind: give them a moment rather than spin.
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            return;
+        }
+        metrics.batch_size.observe(rows.len() as f64);
+        let threads = self.pool.current_num_threads();
+        let part = rows.len().div_ceil(threads).max(MIN_ROWS_PER_THREAD);
+        let model = &self.model;
+        let results: Vec<_> = self.pool.install(|| {
+            rows.par_chunks_mut(part)
+                .map(|part| {
+                    let mut gens: Vec<&mut Generation> =
+                        part.iter_mut().map(|a| &mut a.generation).collect();
+                    step_generations(model, &mut gens)
+                })
+                .collect()
+        });
+        let now = Instant::now();
+        for (part, result) in rows.chunks_mut(part).zip(results) {
+            match result {
+                Ok(events) => {
+                    for (a, event) in part.iter_mut().zip(events) {
+                        if let Some(token) = event.face {
+                            let index = a.generation.faces().len() - 1;
+                            let vertices = face_positions(&token, self.quantizer)
+                                .map(|p| a.normalization.invert(p));
+                            let _ =
+                                a.tx.try_send(Event::Face(StreamedFace { index, token, vertices }));
+                            metrics.faces_generated.inc();
+                            match a.first_face {
+                                None => {
+                                    a.first_face = Some(now);
+                                    metrics
+                                        .time_to_first_face
+                                        .observe((now - a.submitted).as_secs_f64());
+                                }
+                                Some(_) => metrics
+                                    .time_between_faces
+                                    .observe((now - a.last_face).as_secs_f64()),
+                            }
+                            a.last_face = now;
+                        }
+                        if let Some(reason) = event.finished {
+                            let summary = a.summary(reason, now);
+                            metrics.request_duration.observe(summary.total.as_secs_f64());
+                            metrics.finish(finish_code(reason));
+                            a.finish(Event::Finished(summary));
+                        }
+                    }
+                }
+                Err(e) => {
+                    let error = EngineError::from(e);
+                    for a in part.iter_mut() {
+                        metrics.fail(error.code());
+                        a.finish(Event::Failed(error.clone()));
+                    }
+                }
+            }
+        }
+        self.running.retain(|a| !a.done);
+    }
+}
+
+/// Latent sets (B, K, latent_dim) of clouds that all have the model's point and query counts.
+pub(super) fn encode_batch(
+    model: &FaceModel,
+    clouds: &[&PreparedPoints],
+) -> Result<Tensor, EngineError> {
+    let device = model.device();
+    let (b, m, k) = (clouds.len(), model.config().num_points, model.config().num_latents);
+    let flat = |pick: fn(&PreparedPoints) -> &[[f32; 3]]| -> Vec<f32> {
+        clouds.iter().flat_map(|c| pick(c).iter().flatten().copied()).collect()
+    };
+    let points = Tensor::from_vec(flat(|c| &c.points), (b, m, 3), device)?;
+    let normals = Tensor::from_vec(flat(|c| &c.normals), (b, m, 3), device)?;
+    let queries: Vec<u32> = clouds.iter().flat_map(|c| c.queries.iter().copied()).collect();
+    let queries = Tensor::from_vec(queries, (b, k), device)?;
+    Ok(model.encode(&points, &normals, &queries)?)
+}
+
+fn finish_code(reason: FinishReason) -> &'static str {
+    match reason {
+        FinishReason::EndOfMesh => "end_of_mesh",
+        FinishReason::MaxFaces => "max_faces",
+        FinishReason::DeadEnd => "dead_end",
+        FinishReason::Cancelled => "cancelled",
+    }
+}
