@@ -8,5 +8,6 @@ pub mod engine;
 pub mod mesh;
 pub mod metrics;
 pub mod model;
+pub mod server;
 pub mod tokenize;
 pub mod train;

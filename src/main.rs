@@ -1,5 +1,5 @@
-//! The `meshstream` command: inspect, convert, sample and evaluate meshes (and, as the
-//! service grows, reconstruct and serve them).
+//! The `meshstream` command: inspect, convert, sample and evaluate meshes, reconstruct them,
+//! and serve the model over HTTP and gRPC.
 
 mod commands;
 
@@ -27,6 +27,8 @@ enum Command {
     Sample(commands::sample::SampleArgs),
     /// Reconstruct a clean mesh from a point cloud or a dense mesh with a FACE model.
     Reconstruct(commands::reconstruct::ReconstructArgs),
+    /// Serve HTTP and gRPC on one engine (continuous batching, faces streamed as decoded).
+    Serve(commands::serve::ServeArgs),
     /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
     Eval(commands::eval::EvalArgs),
     /// Benchmarks that print a table (run them in a release build).
@@ -41,6 +43,7 @@ fn main() -> anyhow::Result<()> {
         Command::Sample(args) => commands::sample::run(&args),
         Command::Eval(args) => commands::eval::run(&args),
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
+        Command::Serve(args) => commands::serve::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }

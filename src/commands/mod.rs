@@ -6,6 +6,7 @@ pub mod convert;
 pub mod eval;
 pub mod reconstruct;
 pub mod sample;
+pub mod serve;
 pub mod stats;
 
 use std::path::Path;

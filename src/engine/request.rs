@@ -30,8 +30,12 @@ impl PreparedPoints {
         let normalization = Normalization::fit(&input.vertices)?;
         let cloud = encoder_points(&normalization.apply_mesh(input), cfg.num_points, seed)?;
         let normals = cloud.normals.unwrap_or_default();
-        if normals.len() != cloud.vertices.len() {
-            return Err(EngineError::InvalidInput("the input's normals could not be made".into()));
+        if normals.len() != cloud.vertices.len()
+            || normals.iter().chain(&cloud.vertices).flatten().any(|c| !c.is_finite())
+        {
+            return Err(EngineError::InvalidInput(
+                "the input's normals must be finite and non-zero".into(),
+            ));
         }
         let queries = farthest_point_sampling(&cloud.vertices, cfg.num_latents, 0)
             .into_iter()

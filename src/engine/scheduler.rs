@@ -311,7 +311,7 @@ impl Scheduler {
                         if let Some(reason) = event.finished {
                             let summary = a.summary(reason, now);
                             metrics.request_duration.observe(summary.total.as_secs_f64());
-                            metrics.finish(finish_code(reason));
+                            metrics.finish(reason.name());
                             a.finish(Event::Finished(summary));
                         }
                     }
@@ -344,13 +344,4 @@ pub(super) fn encode_batch(
     let queries: Vec<u32> = clouds.iter().flat_map(|c| c.queries.iter().copied()).collect();
     let queries = Tensor::from_vec(queries, (b, k), device)?;
     Ok(model.encode(&points, &normals, &queries)?)
-}
-
-fn finish_code(reason: FinishReason) -> &'static str {
-    match reason {
-        FinishReason::EndOfMesh => "end_of_mesh",
-        FinishReason::MaxFaces => "max_faces",
-        FinishReason::DeadEnd => "dead_end",
-        FinishReason::Cancelled => "cancelled",
-    }
 }

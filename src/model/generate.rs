@@ -45,6 +45,18 @@ pub enum FinishReason {
     Cancelled,
 }
 
+impl FinishReason {
+    /// snake_case, as in metrics labels and API responses.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::EndOfMesh => "end_of_mesh",
+            Self::MaxFaces => "max_faces",
+            Self::DeadEnd => "dead_end",
+            Self::Cancelled => "cancelled",
+        }
+    }
+}
+
 /// One request being generated: its decoder state, sampler and options.
 #[derive(Debug, Clone)]
 pub struct Generation {

@@ -1,0 +1,144 @@
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+use meshstream::engine::{Engine, EngineConfig, Metrics};
+use meshstream::mesh::ReadLimits;
+use meshstream::model::{checkpoint, parse_device};
+use meshstream::server::{InputLimits, ServeConfig, serve};
+use tracing_subscriber::EnvFilter;
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
+/// Every setting is a flag and a `MESHSTREAM_*` environment variable.
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Model folder (config.json + model.safetensors).
+    #[arg(long, env = "MESHSTREAM_MODEL", default_value = "models/default")]
+    model: PathBuf,
+    /// cpu or cuda:N (with --features cuda).
+    #[arg(long, env = "MESHSTREAM_DEVICE", default_value = "cpu")]
+    device: String,
+    #[arg(long, env = "MESHSTREAM_HTTP_ADDR", default_value = "0.0.0.0:8080")]
+    http_addr: SocketAddr,
+    #[arg(long, env = "MESHSTREAM_LOG_FORMAT", value_enum, default_value = "text")]
+    log_format: LogFormat,
+    /// Sequences decoded together.
+    #[arg(long, env = "MESHSTREAM_MAX_RUNNING", default_value_t = 16)]
+    max_running: usize,
+    /// Requests waiting to start; more are refused with 429.
+    #[arg(long, env = "MESHSTREAM_MAX_QUEUE", default_value_t = 64)]
+    max_queue: usize,
+    /// Face budget of one request (the model's own limit applies too).
+    #[arg(long, env = "MESHSTREAM_MAX_FACES", default_value_t = 4096)]
+    max_faces: usize,
+    /// Sum of the running sequences' face budgets (bounds cache memory).
+    #[arg(long, env = "MESHSTREAM_MAX_BATCH_FACES", default_value_t = 65536)]
+    max_batch_faces: usize,
+    /// Requests encoded per scheduler iteration.
+    #[arg(long, env = "MESHSTREAM_MAX_ENCODES_PER_ITERATION", default_value_t = 4)]
+    max_encodes_per_iteration: usize,
+    /// Seconds a request may wait in the queue.
+    #[arg(long, env = "MESHSTREAM_QUEUE_TIMEOUT", default_value_t = 30.0)]
+    queue_timeout: f64,
+    /// Seconds after which a waiting request is no longer overtaken by smaller ones.
+    #[arg(long, env = "MESHSTREAM_AGING", default_value_t = 2.0)]
+    aging: f64,
+    /// Events buffered per client before its sequence waits for it.
+    #[arg(long, env = "MESHSTREAM_STREAM_BUFFER", default_value_t = 256)]
+    stream_buffer: usize,
+    /// Threads stepping the running batch (0: one per core).
+    #[arg(long, env = "MESHSTREAM_DECODE_THREADS", default_value_t = 0)]
+    decode_threads: usize,
+    /// Seconds a request may take in all.
+    #[arg(long, env = "MESHSTREAM_REQUEST_TIMEOUT", default_value_t = 300.0)]
+    request_timeout: f64,
+    /// Seconds accepted requests may still take after SIGTERM.
+    #[arg(long, env = "MESHSTREAM_SHUTDOWN_GRACE", default_value_t = 30.0)]
+    shutdown_grace: f64,
+    /// Largest request body in bytes.
+    #[arg(long, env = "MESHSTREAM_MAX_BODY_BYTES", default_value_t = 64 << 20)]
+    max_body_bytes: usize,
+    /// Most points (or mesh vertices) in one request.
+    #[arg(long, env = "MESHSTREAM_MAX_POINTS", default_value_t = 2_000_000)]
+    max_points: usize,
+    /// Most triangles in an uploaded mesh.
+    #[arg(long, env = "MESHSTREAM_MAX_MESH_FACES", default_value_t = 4_000_000)]
+    max_mesh_faces: usize,
+}
+
+fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(value).with_context(|| format!("--{name} {value}"))
+}
+
+pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
+    let filter = EnvFilter::try_from_env("MESHSTREAM_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
+    let logs = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    match args.log_format {
+        LogFormat::Text => logs.init(),
+        LogFormat::Json => logs.json().init(),
+    }
+    let device = parse_device(&args.device)?;
+    let model = checkpoint::load(&args.model, &device)
+        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let config = EngineConfig {
+        max_running: args.max_running,
+        max_queue: args.max_queue,
+        max_faces_per_request: args.max_faces,
+        max_batch_faces: args.max_batch_faces,
+        max_encodes_per_iteration: args.max_encodes_per_iteration,
+        queue_timeout: seconds("queue-timeout", args.queue_timeout)?,
+        aging: seconds("aging", args.aging)?,
+        stream_buffer: args.stream_buffer,
+        decode_threads: args.decode_threads,
+    };
+    let engine = Engine::start(model, config, Arc::new(Metrics::default()))?;
+    let serve_config = ServeConfig {
+        http_addr: args.http_addr,
+        limits: InputLimits {
+            max_points: args.max_points,
+            read: ReadLimits {
+                max_bytes: args.max_body_bytes as u64,
+                max_vertices: args.max_points,
+                max_faces: args.max_mesh_faces,
+            },
+        },
+        max_body_bytes: args.max_body_bytes,
+        request_timeout: seconds("request-timeout", args.request_timeout)?,
+        shutdown_grace: seconds("shutdown-grace", args.shutdown_grace)?,
+        model_dir: args.model.clone(),
+    };
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(serve(engine, serve_config, termination()))?;
+    Ok(())
+}
+
+/// SIGTERM (Kubernetes, docker stop) or SIGINT (Ctrl-C).
+async fn termination() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = tokio::signal::ctrl_c() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

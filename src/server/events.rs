@@ -1,0 +1,59 @@
+//! The JSON of streamed events, shared by the SSE and NDJSON streams.
+
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use crate::engine::{StreamedFace, Summary};
+
+use super::error::ErrorBody;
+
+#[derive(Serialize, ToSchema)]
+pub struct FaceEvent {
+    pub index: usize,
+    /// The three corners in the request's coordinates, in the face's winding.
+    pub vertices: [[f32; 3]; 3],
+}
+
+#[derive(Serialize, ToSchema)]
+pub struct DoneEvent {
+    pub request_id: String,
+    pub faces: usize,
+    /// end_of_mesh, max_faces, dead_end or cancelled.
+    pub finish_reason: &'static str,
+    pub queued_ms: f64,
+    pub encode_ms: f64,
+    pub decode_ms: f64,
+    pub time_to_first_face_ms: Option<f64>,
+    pub total_ms: f64,
+}
+
+/// One NDJSON line.
+#[derive(Serialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum Line {
+    Face(FaceEvent),
+    Done(DoneEvent),
+    Error(ErrorBody),
+}
+
+impl From<&StreamedFace> for FaceEvent {
+    fn from(f: &StreamedFace) -> Self {
+        Self { index: f.index, vertices: f.vertices }
+    }
+}
+
+impl DoneEvent {
+    pub fn new(request_id: &str, s: &Summary) -> Self {
+        let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+        Self {
+            request_id: request_id.to_string(),
+            faces: s.faces,
+            finish_reason: s.finish.name(),
+            queued_ms: ms(s.queued),
+            encode_ms: ms(s.prepare),
+            decode_ms: ms(s.decode),
+            time_to_first_face_ms: s.time_to_first_face.map(ms),
+            total_ms: ms(s.total),
+        }
+    }
+}

@@ -1,0 +1,313 @@
+//! The HTTP interface (axum): `POST /reconstruct` (a mesh, or faces streamed as SSE or
+//! NDJSON), health, readiness, metrics, model information and the OpenAPI document.
+
+use std::convert::Infallible;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::{Body, Bytes, to_bytes};
+use axum::extract::{Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, Uri, header};
+use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures_util::{Stream, StreamExt, stream};
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::TraceLayer;
+use utoipa::OpenApi;
+
+use crate::engine::{Engine, Event, Request, RequestStream};
+use crate::mesh::{Format, write_mesh};
+
+use super::error::{ApiError, ErrorBody};
+use super::events::{DoneEvent, FaceEvent, Line};
+use super::input::{InputLimits, ParsedRequest, PointsBody, ReconstructOptions, parse_body};
+use super::prepare;
+
+#[derive(Clone)]
+pub struct AppState {
+    pub engine: Engine,
+    pub limits: InputLimits,
+    pub max_body_bytes: usize,
+    pub request_timeout: Duration,
+    /// The `/v1/info` document, made once at start.
+    pub info: Arc<serde_json::Value>,
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "meshstream", description = "Point clouds and meshes to artist-style meshes \
+        with the FACE method, streamed face by face."),
+    paths(reconstruct, healthz, readyz, metrics, info),
+    components(schemas(PointsBody, ErrorBody, FaceEvent, DoneEvent))
+)]
+struct ApiDoc;
+
+pub fn router(state: AppState) -> Router {
+    Router::new()
+        .route("/reconstruct", post(reconstruct))
+        .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
+        .route("/v1/info", get(info))
+        .route("/openapi.json", get(openapi))
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such route") })
+        .with_state(state)
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(TraceLayer::new_for_http().make_span_with(|req: &axum::http::Request<Body>| {
+            let id = req.headers().get("x-request-id").and_then(|v| v.to_str().ok());
+            tracing::info_span!("http", method = %req.method(), uri = %req.uri(), request_id = id)
+        }))
+        .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+}
+
+/// Reconstructs a mesh from points (JSON) or a point cloud or mesh file (raw body).
+///
+/// The mesh comes back in the request's coordinates, in `format` (GLB by default). With
+/// `Accept: text/event-stream` the response is SSE: one `face` event per face as it is
+/// decoded, then a `done` event (or an `error` event); with `Accept: application/x-ndjson`,
+/// the same as JSON lines with a `type` field.
+#[utoipa::path(
+    post,
+    path = "/reconstruct",
+    params(ReconstructOptions),
+    request_body(
+        content(
+            (PointsBody = "application/json"),
+            (Vec<u8> = "application/octet-stream"),
+            (Vec<u8> = "model/gltf-binary"),
+            (Vec<u8> = "application/ply"),
+            (Vec<u8> = "model/obj"),
+            (Vec<u8> = "model/stl"),
+        ),
+        description = "Points as JSON (options in the body), or a file (options as query \
+            parameters); a mesh is sampled to points, missing normals are estimated"
+    ),
+    responses(
+        (status = 200, description = "The mesh, or the event stream", headers(
+            ("x-request-id" = String, description = "Given or generated"),
+            ("x-meshstream-faces" = usize, description = "Faces in the mesh"),
+            ("x-meshstream-time-ms" = f64, description = "Time in the engine"),
+        ), content(
+            (Vec<u8> = "model/gltf-binary"),
+            (String = "text/event-stream"),
+            (String = "application/x-ndjson"),
+        )),
+        (status = 400, description = "Malformed body or unknown format", body = ErrorBody),
+        (status = 413, description = "Body over the size limit", body = ErrorBody),
+        (status = 422, description = "Invalid points or options", body = ErrorBody),
+        (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
+        (status = 503, description = "Shutting down, or waited too long in the queue", body = ErrorBody),
+    )
+)]
+async fn reconstruct(
+    State(state): State<AppState>,
+    uri: Uri,
+    headers: HeaderMap,
+    body: Body,
+) -> Response {
+    let id = headers
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or_default()
+        .to_string();
+    match start(&state, &id, &uri, &headers, body).await {
+        Ok((stream, format)) => respond(stream, format, &headers, id).await,
+        Err(e) => {
+            tracing::info!(code = e.code, status = e.status.as_u16(), "refused: {}", e.message);
+            e.into_response()
+        }
+    }
+}
+
+/// Reads and checks the request and queues it.
+async fn start(
+    state: &AppState,
+    id: &str,
+    uri: &Uri,
+    headers: &HeaderMap,
+    body: Body,
+) -> Result<(RequestStream, Format), ApiError> {
+    let metrics = state.engine.metrics();
+    let record = |e: ApiError| {
+        metrics.reject(e.code);
+        e
+    };
+    let query = Query::<ReconstructOptions>::try_from_uri(uri)
+        .map_err(|e| record(ApiError::invalid(format!("query parameters: {}", e.body_text()))))?
+        .0;
+    let bytes = read_body(body, state.max_body_bytes).await.map_err(record)?;
+    let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
+    let (parsed, prepared) = tokio::task::spawn_blocking(move || {
+        let parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
+        let prepared = prepare(&engine, &parsed.input, parsed.seed)?;
+        Ok::<_, ApiError>((parsed, prepared))
+    })
+    .await
+    .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))?
+    .map_err(record)?;
+    let request = Request {
+        id: id.to_string(),
+        conditioning: prepared,
+        options: parsed.decode,
+        deadline: Some(Instant::now() + state.request_timeout),
+    };
+    // The engine counts its own refusals.
+    let stream = state.engine.submit(request)?;
+    Ok((stream, parsed.format))
+}
+
+async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    to_bytes(body, limit).await.map_err(|e| {
+        let mut source: Option<&(dyn std::error::Error + 'static)> = Some(&e);
+        while let Some(s) = source {
+            if s.is::<http_body_util::LengthLimitError>() {
+                return ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "too_large",
+                    format!("the body is over this server's limit of {limit} bytes"),
+                );
+            }
+            source = s.source();
+        }
+        ApiError::malformed(format!("reading the body failed: {e}"))
+    })
+}
+
+enum Streaming {
+    Sse,
+    Ndjson,
+}
+
+fn streaming(headers: &HeaderMap) -> Option<Streaming> {
+    let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("");
+    if accept.contains("text/event-stream") {
+        Some(Streaming::Sse)
+    } else if accept.contains("application/x-ndjson") {
+        Some(Streaming::Ndjson)
+    } else {
+        None
+    }
+}
+
+async fn respond(stream: RequestStream, format: Format, headers: &HeaderMap, id: String) -> Response {
+    match streaming(headers) {
+        Some(Streaming::Sse) => {
+            let events = lines(stream, id).map(|line| {
+                let event = match &line {
+                    Line::Face(_) => "face",
+                    Line::Done(_) => "done",
+                    Line::Error(_) => "error",
+                };
+                let data = match line {
+                    Line::Face(f) => serde_json::to_string(&f),
+                    Line::Done(d) => serde_json::to_string(&d),
+                    Line::Error(e) => serde_json::to_string(&e),
+                };
+                Ok::<_, Infallible>(SseEvent::default().event(event).data(data.unwrap_or_default()))
+            });
+            Sse::new(events).keep_alive(KeepAlive::default()).into_response()
+        }
+        Some(Streaming::Ndjson) => {
+            let body = lines(stream, id).map(|line| {
+                let mut text = serde_json::to_vec(&line).unwrap_or_default();
+                text.push(b'\n');
+                Ok::<_, Infallible>(Bytes::from(text))
+            });
+            ([(header::CONTENT_TYPE, "application/x-ndjson")], Body::from_stream(body))
+                .into_response()
+        }
+        None => mesh_response(stream, format, id).await.unwrap_or_else(IntoResponse::into_response),
+    }
+}
+
+/// The request's events as stream lines; ends after the final one. Dropping it (the client
+/// went away) drops the request's stream, which cancels it.
+fn lines(stream: RequestStream, id: String) -> impl Stream<Item = Line> {
+    stream::unfold(Some(stream), move |state| {
+        let id = id.clone();
+        async move {
+            let mut s = state?;
+            let line = match s.next().await? {
+                Event::Face(f) => return Some((Line::Face(FaceEvent::from(&f)), Some(s))),
+                Event::Finished(summary) => {
+                    tracing::info!(request_id = %id, faces = summary.faces, "streamed");
+                    Line::Done(DoneEvent::new(&id, &summary))
+                }
+                Event::Failed(e) => Line::Error(ApiError::from(e).body()),
+            };
+            Some((line, None))
+        }
+    })
+}
+
+async fn mesh_response(stream: RequestStream, format: Format, id: String) -> Result<Response, ApiError> {
+    let done = stream.collect().await?;
+    let bytes = write_mesh(&done.mesh, format).map_err(|e| {
+        ApiError::internal(format!(
+            "the result ({} faces, {}) cannot be written: {e}",
+            done.summary.faces,
+            done.summary.finish.name()
+        ))
+    })?;
+    let done_event = DoneEvent::new(&id, &done.summary);
+    tracing::info!(request_id = %id, faces = done_event.faces, total_ms = done_event.total_ms, "reconstructed");
+    let mut response = (
+        [(header::CONTENT_TYPE, format.content_type())],
+        Bytes::from(bytes),
+    )
+        .into_response();
+    let h = response.headers_mut();
+    let mut set = |name: &'static str, value: String| {
+        if let Ok(v) = HeaderValue::from_str(&value) {
+            h.insert(name, v);
+        }
+    };
+    set("x-meshstream-faces", done_event.faces.to_string());
+    set("x-meshstream-time-ms", format!("{:.1}", done_event.total_ms));
+    set("x-meshstream-finish-reason", done_event.finish_reason.to_string());
+    Ok(response)
+}
+
+/// Live: the process answers.
+#[utoipa::path(get, path = "/healthz", responses((status = 200, description = "Alive")))]
+async fn healthz() -> &'static str {
+    "ok"
+}
+
+/// Ready: the model is loaded and the engine accepts requests.
+#[utoipa::path(get, path = "/readyz", responses(
+    (status = 200, description = "Ready"),
+    (status = 503, description = "Shutting down or stopped", body = ErrorBody),
+))]
+async fn readyz(State(state): State<AppState>) -> Response {
+    let status = state.engine.status();
+    if status.alive && status.accepting {
+        "ready".into_response()
+    } else {
+        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "not_ready", "the engine is not accepting requests")
+            .into_response()
+    }
+}
+
+/// Prometheus metrics: queue depth, running sequences, faces, time to first face and between
+/// faces, request duration, batch size, rejections and failures by reason.
+#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Text exposition format", content_type = "text/plain")))]
+async fn metrics(State(state): State<AppState>) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
+        state.engine.metrics().render(),
+    )
+        .into_response()
+}
+
+/// The model's configuration and version, the engine's settings and the request limits.
+#[utoipa::path(get, path = "/v1/info", responses((status = 200, description = "Server information", content_type = "application/json")))]
+async fn info(State(state): State<AppState>) -> Json<serde_json::Value> {
+    Json((*state.info).clone())
+}
+
+async fn openapi() -> Json<utoipa::openapi::OpenApi> {
+    Json(ApiDoc::openapi())
+}

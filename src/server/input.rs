@@ -1,0 +1,245 @@
+//! Request bodies to a mesh or point cloud and decoding options: a JSON body of points, or a
+//! raw upload of a point cloud or mesh in any supported format.
+
+use axum::http::HeaderMap;
+use axum::http::header::CONTENT_TYPE;
+use serde::Deserialize;
+use utoipa::{IntoParams, ToSchema};
+
+use crate::engine::DecodeOptions;
+use crate::mesh::{Format, Mesh, ReadLimits, read_mesh};
+use crate::model::SamplingParams;
+
+use super::error::ApiError;
+
+/// Decoding options: fields of the JSON body, or query parameters of a raw upload.
+#[derive(Debug, Clone, Default, Deserialize, ToSchema, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct ReconstructOptions {
+    /// Face budget (default and maximum: the server's limit, see `/v1/info`).
+    pub max_faces: Option<usize>,
+    /// 0 (the default) decodes greedily.
+    pub temperature: Option<f32>,
+    pub top_k: Option<usize>,
+    pub top_p: Option<f32>,
+    /// Seed of the point sampling and of the decoding when it samples.
+    pub seed: Option<u64>,
+    /// glb (default), obj, ply or stl.
+    pub format: Option<String>,
+}
+
+/// `POST /reconstruct` with `Content-Type: application/json`.
+#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PointsBody {
+    /// [[x, y, z], ...] in any units and frame: the mesh comes back in the same.
+    pub points: Vec<[f32; 3]>,
+    /// One per point; estimated from the points when absent.
+    pub normals: Option<Vec<[f32; 3]>>,
+    pub max_faces: Option<usize>,
+    pub temperature: Option<f32>,
+    pub top_k: Option<usize>,
+    pub top_p: Option<f32>,
+    pub seed: Option<u64>,
+    pub format: Option<String>,
+}
+
+/// What a request asks for, parsed and checked.
+#[derive(Debug, Clone)]
+pub struct ParsedRequest {
+    pub input: Mesh,
+    pub decode: DecodeOptions,
+    pub seed: u64,
+    pub format: Format,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub struct InputLimits {
+    pub max_points: usize,
+    pub read: ReadLimits,
+}
+
+impl ReconstructOptions {
+    fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
+        let format = match self.format.as_deref() {
+            None => Format::Gltf,
+            Some(name) => name.parse::<Format>().map_err(|_| {
+                ApiError::invalid(format!("format {name:?}: use glb, obj, ply or stl"))
+            })?,
+        };
+        let seed = self.seed.unwrap_or(0);
+        let sampling = SamplingParams {
+            temperature: self.temperature.unwrap_or(0.0),
+            top_k: self.top_k,
+            top_p: self.top_p,
+            seed,
+        };
+        sampling.validate().map_err(|e| ApiError::invalid(e.to_string()))?;
+        Ok(ParsedRequest {
+            input,
+            decode: DecodeOptions { max_faces: self.max_faces, sampling },
+            seed,
+            format,
+        })
+    }
+}
+
+/// Parses a body by its Content-Type: JSON points, or a mesh file (by type, or sniffed when
+/// the type is generic or missing). CPU work for large uploads: call it off the runtime.
+pub fn parse_body(
+    headers: &HeaderMap,
+    query: ReconstructOptions,
+    body: &[u8],
+    limits: &InputLimits,
+) -> Result<ParsedRequest, ApiError> {
+    let content_type = headers.get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    let essence = content_type.split(';').next().unwrap_or_default().trim().to_ascii_lowercase();
+    if essence == "application/json" {
+        return parse_json(body, limits);
+    }
+    if body.is_empty() {
+        return Err(ApiError::invalid("the body is empty: send points or a mesh"));
+    }
+    let format = match Format::from_content_type(&essence) {
+        Some(f) => f,
+        None if matches!(essence.as_str(), "" | "application/octet-stream") => {
+            Format::sniff(body).ok_or_else(|| {
+                ApiError::new(
+                    axum::http::StatusCode::BAD_REQUEST,
+                    "unsupported_format",
+                    "the body is not a PLY, OBJ, STL or glTF file",
+                )
+            })?
+        }
+        None => {
+            return Err(ApiError::new(
+                axum::http::StatusCode::BAD_REQUEST,
+                "unsupported_format",
+                format!(
+                    "Content-Type {content_type:?}: send application/json, a mesh type \
+                     (model/gltf-binary, model/obj, model/stl, application/ply) or \
+                     application/octet-stream"
+                ),
+            ));
+        }
+    };
+    let mesh = read_mesh(body, format, &limits.read)?;
+    check_points(&mesh, limits)?;
+    query.checked(mesh)
+}
+
+fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiError> {
+    let b: PointsBody = serde_json::from_slice(body).map_err(|e| {
+        if e.is_data() {
+            ApiError::invalid(format!("the JSON body does not fit the schema: {e}"))
+        } else {
+            ApiError::malformed(format!("the body is not JSON: {e}"))
+        }
+    })?;
+    if let Some(normals) = &b.normals
+        && normals.len() != b.points.len()
+    {
+        return Err(ApiError::invalid(format!(
+            "{} normals for {} points: give one per point, or none",
+            normals.len(),
+            b.points.len()
+        )));
+    }
+    let mesh = Mesh { vertices: b.points, faces: Vec::new(), normals: b.normals };
+    check_points(&mesh, limits)?;
+    let options = ReconstructOptions {
+        max_faces: b.max_faces,
+        temperature: b.temperature,
+        top_k: b.top_k,
+        top_p: b.top_p,
+        seed: b.seed,
+        format: b.format,
+    };
+    options.checked(mesh)
+}
+
+fn check_points(mesh: &Mesh, limits: &InputLimits) -> Result<(), ApiError> {
+    let n = mesh.vertices.len();
+    if n == 0 {
+        return Err(ApiError::invalid("no points"));
+    }
+    if mesh.faces.is_empty() && n < 3 {
+        return Err(ApiError::invalid(format!("a point cloud needs at least 3 points, got {n}")));
+    }
+    if n > limits.max_points {
+        return Err(ApiError::invalid(format!(
+            "{n} points: this server accepts at most {}",
+            limits.max_points
+        )));
+    }
+    mesh.validate()?;
+    if let Some(normals) = &mesh.normals
+        && normals.iter().flatten().any(|c| !c.is_finite())
+    {
+        return Err(ApiError::invalid("a normal has a non-finite coordinate"));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::http::HeaderValue;
+
+    fn limits() -> InputLimits {
+        InputLimits { max_points: 100, read: ReadLimits::default() }
+    }
+
+    fn json(body: &str) -> Result<ParsedRequest, ApiError> {
+        let mut h = HeaderMap::new();
+        h.insert(CONTENT_TYPE, HeaderValue::from_static("application/json"));
+        parse_body(&h, ReconstructOptions::default(), body.as_bytes(), &limits())
+    }
+
+    #[test]
+    fn json_points_with_options_parse() {
+        let r = json(r#"{"points": [[0,0,0],[1,0,0],[0,1,0]], "max_faces": 10, "format": "obj"}"#)
+            .unwrap();
+        assert_eq!(r.input.vertices.len(), 3);
+        assert_eq!(r.decode.max_faces, Some(10));
+        assert_eq!(r.format, Format::Obj);
+    }
+
+    #[test]
+    fn bad_json_bodies_get_their_codes() {
+        let code = |b: &str| json(b).map(|_| ()).unwrap_err();
+        assert_eq!(code("{not json").status.as_u16(), 400);
+        assert_eq!(code(r#"{"points": []}"#).code, "invalid_input");
+        assert_eq!(code(r#"{"points": [[0,0]]}"#).status.as_u16(), 422);
+        assert_eq!(code(r#"{"points": [[0,0,0],[1,0,0],[0,1,0]], "max_face": 3}"#).status, 422);
+        let huge = r#"{"points": [[1e39,0,0],[1,0,0],[0,1,0]]}"#;
+        assert_eq!(code(huge).status.as_u16(), 422);
+        let normals = r#"{"points": [[0,0,0],[1,0,0],[0,1,0]], "normals": [[0,0,1]]}"#;
+        assert!(code(normals).message.contains("1 normals for 3 points"));
+        let format = r#"{"points": [[0,0,0],[1,0,0],[0,1,0]], "format": "fbx"}"#;
+        assert!(code(format).message.contains("fbx"));
+        let temp = r#"{"points": [[0,0,0],[1,0,0],[0,1,0]], "temperature": -1}"#;
+        assert_eq!(code(temp).status.as_u16(), 422);
+        let many: Vec<String> = (0..101).map(|i| format!("[{i},0,0]")).collect();
+        let many = format!(r#"{{"points": [{}]}}"#, many.join(","));
+        assert!(code(&many).message.contains("at most 100"));
+    }
+
+    #[test]
+    fn raw_uploads_go_by_content_type_or_sniffing() {
+        let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        let parse = |ct: Option<&'static str>, body: &[u8]| {
+            let mut h = HeaderMap::new();
+            if let Some(ct) = ct {
+                h.insert(CONTENT_TYPE, HeaderValue::from_static(ct));
+            }
+            parse_body(&h, ReconstructOptions::default(), body, &limits())
+        };
+        assert_eq!(parse(Some("model/obj"), obj).unwrap().input.faces.len(), 1);
+        assert_eq!(parse(None, obj).unwrap().input.faces.len(), 1);
+        assert_eq!(parse(Some("image/png"), obj).unwrap_err().code, "unsupported_format");
+        assert_eq!(parse(None, b"\x00\x01garbage").unwrap_err().code, "unsupported_format");
+        assert_eq!(parse(Some("model/obj"), b"").unwrap_err().code, "invalid_input");
+        assert_eq!(parse(Some("application/ply"), b"ply\nformat nonsense\n").unwrap_err().status, 400);
+    }
+}

@@ -1,0 +1,129 @@
+//! `meshstream serve`: HTTP (axum) and gRPC (tonic) in one process, on one engine.
+
+mod error;
+mod events;
+mod http;
+mod input;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use serde_json::json;
+use thiserror::Error;
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+
+use crate::engine::{Conditioning, Engine, PreparedPoints};
+use crate::mesh::Mesh;
+
+pub use error::ApiError;
+pub use input::InputLimits;
+
+#[derive(Debug, Error)]
+pub enum ServerError {
+    #[error("cannot listen on {addr}: {source}")]
+    Bind { addr: SocketAddr, source: std::io::Error },
+    #[error("the {what} server failed: {message}")]
+    Serve { what: &'static str, message: String },
+}
+
+#[derive(Debug, Clone)]
+pub struct ServeConfig {
+    pub http_addr: SocketAddr,
+    pub limits: InputLimits,
+    pub max_body_bytes: usize,
+    /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
+    pub request_timeout: Duration,
+    /// After SIGTERM: how long accepted requests may still take.
+    pub shutdown_grace: Duration,
+    /// Shown by `/v1/info`.
+    pub model_dir: PathBuf,
+}
+
+/// The encoder's input for a mesh or point cloud in the caller's coordinates. CPU work.
+pub(crate) fn prepare(engine: &Engine, input: &Mesh, seed: u64) -> Result<Conditioning, ApiError> {
+    let points = PreparedPoints::from_mesh(input, engine.model_config(), seed)?;
+    Ok(Conditioning::Points(points))
+}
+
+fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
+    let model = engine.model_config();
+    json!({
+        "service": "meshstream",
+        "version": env!("CARGO_PKG_VERSION"),
+        "model": {
+            "dir": cfg.model_dir.display().to_string(),
+            "parameters": model.parameter_count(),
+            "config": model,
+        },
+        "engine": engine.config(),
+        "limits": {
+            "max_faces": engine.face_limit(),
+            "max_points": cfg.limits.max_points,
+            "max_body_bytes": cfg.max_body_bytes,
+            "request_timeout_s": cfg.request_timeout.as_secs_f64(),
+        },
+    })
+}
+
+/// Serves until `shutdown` resolves, then stops accepting, lets accepted requests finish for
+/// the grace period, and returns. Prints the bound addresses on stdout once listening.
+pub async fn serve(
+    engine: Engine,
+    cfg: ServeConfig,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let http_listener = TcpListener::bind(cfg.http_addr)
+        .await
+        .map_err(|source| ServerError::Bind { addr: cfg.http_addr, source })?;
+    let http_addr = http_listener.local_addr().unwrap_or(cfg.http_addr);
+    let state = http::AppState {
+        engine: engine.clone(),
+        limits: cfg.limits,
+        max_body_bytes: cfg.max_body_bytes,
+        request_timeout: cfg.request_timeout,
+        info: Arc::new(info_document(&engine, &cfg)),
+    };
+    println!("meshstream listening: http={http_addr}");
+    tracing::info!(%http_addr, "listening");
+
+    let (closing_tx, closing_rx) = watch::channel(false);
+    let grace = cfg.shutdown_grace;
+    let signal_engine = engine.clone();
+    tokio::spawn(async move {
+        shutdown.await;
+        tracing::info!(grace_s = grace.as_secs_f64(), "shutting down: finishing accepted requests");
+        signal_engine.shutdown(grace);
+        let _ = closing_tx.send(true);
+    });
+    let closed = |mut rx: watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|closing| *closing).await;
+    };
+    let http_server = axum::serve(http_listener, http::router(state))
+        .with_graceful_shutdown(closed(closing_rx.clone()));
+    let servers = async {
+        http_server
+            .await
+            .map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })
+    };
+    // Connections that outlive the grace period (a client that never reads) do not hold the
+    // process: the engine has failed their requests by then.
+    let deadline = async {
+        closed(closing_rx.clone()).await;
+        tokio::time::sleep(grace + Duration::from_secs(2)).await;
+    };
+    let result = tokio::select! {
+        r = servers => r,
+        () = deadline => {
+            tracing::warn!("connections still open after the grace period: closing them");
+            Ok(())
+        }
+    };
+    let joining = engine.clone();
+    let _ = tokio::task::spawn_blocking(move || joining.join()).await;
+    tracing::info!("stopped");
+    result
+}

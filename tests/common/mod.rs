@@ -1,0 +1,97 @@
+//! A real `meshstream serve` process on ephemeral ports, for the interface tests.
+
+#![allow(dead_code)] // each test binary uses part of it
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use meshstream::mesh::Mesh;
+use meshstream::mesh::primitives::{cuboid, uv_sphere};
+
+pub struct Server {
+    pub child: Child,
+    pub http: String,
+    pub grpc: Option<String>,
+}
+
+impl Server {
+    /// Starts the server with the shipped model and `extra` flags; waits until it listens.
+    pub fn start(extra: &[&str]) -> Server {
+        let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+            .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
+            .args(extra)
+            .env("MESHSTREAM_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line).unwrap();
+        // "meshstream listening: http=ADDR grpc=ADDR"
+        let field = |name: &str| {
+            line.split_whitespace()
+                .find_map(|w| w.strip_prefix(&format!("{name}=")).map(str::to_string))
+        };
+        let http = field("http").unwrap_or_else(|| panic!("no address in {line:?}"));
+        Server { child, http: format!("http://{http}"), grpc: field("grpc").map(|a| format!("http://{a}")) }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.http)
+    }
+
+    /// SIGTERM, as Kubernetes sends it.
+    pub fn terminate(&self) {
+        let pid = self.child.id().to_string();
+        assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    }
+
+    pub fn wait_exit(&mut self, limit: Duration) -> Option<i32> {
+        let t0 = Instant::now();
+        while t0.elapsed() < limit {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status.code();
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+
+    /// A metric's value from `/metrics` (the first sample whose line starts with `prefix`).
+    pub async fn metric(&self, client: &reqwest::Client, prefix: &str) -> f64 {
+        let text = client.get(self.url("/metrics")).send().await.unwrap().text().await.unwrap();
+        text.lines()
+            .find(|l| l.starts_with(prefix))
+            .and_then(|l| l.rsplit(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("no {prefix} in\n{text}"))
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A small test shape: a box on a sphere, as a point cloud with normals sampled from it.
+pub fn shape() -> Mesh {
+    let mut m = cuboid([1.0, 0.6, 0.8]);
+    m.append(&uv_sphere(0.4, 8, 5).translated([0.0, 0.6, 0.0]));
+    meshstream::mesh::sample_surface(&m, 3000, 7).unwrap()
+}
+
+pub fn points_json(m: &Mesh, extra: serde_json::Value) -> serde_json::Value {
+    let mut body = serde_json::json!({
+        "points": m.vertices,
+        "normals": m.normals,
+    });
+    if let (Some(b), Some(e)) = (body.as_object_mut(), extra.as_object()) {
+        b.extend(e.clone());
+    }
+    body
+}

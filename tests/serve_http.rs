@@ -1,0 +1,301 @@
+//! `meshstream serve` over HTTP, as a client sees it: the real binary on an ephemeral port.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::{Server, points_json, shape};
+use futures_util::StreamExt;
+use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
+use serde_json::{Value, json};
+
+fn client() -> reqwest::Client {
+    reqwest::Client::new()
+}
+
+async fn reconstruct_glb(server: &Server, body: &Value) -> (reqwest::header::HeaderMap, Vec<u8>) {
+    let r = client().post(server.url("/reconstruct")).json(body).send().await.unwrap();
+    assert_eq!(r.status(), 200, "{:?}", r.text().await);
+    let headers = r.headers().clone();
+    (headers, r.bytes().await.unwrap().to_vec())
+}
+
+/// Face events of an SSE or NDJSON stream with their arrival times, and the final event.
+async fn stream_events(server: &Server, body: &Value, accept: &str) -> (Vec<(Instant, Value)>, Value) {
+    let r = client()
+        .post(server.url("/reconstruct"))
+        .header("accept", accept)
+        .json(body)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let mut chunks = r.bytes_stream();
+    let (mut buffer, mut faces) = (String::new(), Vec::new());
+    while let Some(chunk) = chunks.next().await {
+        buffer.push_str(std::str::from_utf8(&chunk.unwrap()).unwrap());
+        while let Some(end) = buffer.find('\n') {
+            let line: String = buffer.drain(..=end).collect();
+            let data = if accept == "text/event-stream" {
+                match line.strip_prefix("data: ") {
+                    Some(d) => d.trim().to_string(),
+                    None => continue,
+                }
+            } else {
+                line.trim().to_string()
+            };
+            if data.is_empty() {
+                continue;
+            }
+            let v: Value = serde_json::from_str(&data).unwrap();
+            if v.get("vertices").is_some() {
+                faces.push((Instant::now(), v));
+            } else {
+                return (faces, v);
+            }
+        }
+    }
+    panic!("the stream ended without a final event");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_glb_comes_back_in_the_callers_coordinates() {
+    let server = Server::start(&[]);
+    let cloud = shape();
+    let (h, base) = reconstruct_glb(&server, &points_json(&cloud, json!({"max_faces": 60}))).await;
+    assert_eq!(h["content-type"], "model/gltf-binary");
+    assert!(h.contains_key("x-request-id"));
+    let faces: usize = h["x-meshstream-faces"].to_str().unwrap().parse().unwrap();
+    let base = read_mesh(&base, Format::Gltf, &ReadLimits::default()).unwrap();
+    assert_eq!(base.faces.len(), faces);
+    assert!(faces > 0 && faces <= 60);
+
+    // The same shape scaled by 10 and moved: the same mesh, scaled and moved the same way.
+    let mut moved = cloud.clone();
+    for v in &mut moved.vertices {
+        *v = [v[0] * 10.0 + 5.0, v[1] * 10.0 - 20.0, v[2] * 10.0 + 1.0];
+    }
+    let (_, out) = reconstruct_glb(&server, &points_json(&moved, json!({"max_faces": 60}))).await;
+    let out = read_mesh(&out, Format::Gltf, &ReadLimits::default()).unwrap();
+    assert_eq!(out.faces.len(), base.faces.len());
+    for (a, b) in base.vertices.iter().zip(&out.vertices) {
+        let expected = [a[0] * 10.0 + 5.0, a[1] * 10.0 - 20.0, a[2] * 10.0 + 1.0];
+        for k in 0..3 {
+            assert!((b[k] - expected[k]).abs() < 1e-3, "{b:?} vs {expected:?}");
+        }
+    }
+
+    // Other formats by option, and a raw upload of a mesh file with options in the query.
+    let (h, obj) = reconstruct_glb(&server, &points_json(&cloud, json!({"max_faces": 30, "format": "obj"}))).await;
+    assert_eq!(h["content-type"], "model/obj");
+    assert!(read_mesh(&obj, Format::Obj, &ReadLimits::default()).is_ok());
+    let upload = write_mesh(&meshstream::mesh::primitives::cuboid([2.0, 1.0, 1.0]), Format::Ply).unwrap();
+    let r = client()
+        .post(server.url("/reconstruct?max_faces=20&format=stl"))
+        .header("content-type", "application/ply")
+        .body(upload)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "model/stl");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
+    let server = Server::start(&[]);
+    let body = points_json(&shape(), json!({"max_faces": 200}));
+    let (_, glb) = reconstruct_glb(&server, &body).await;
+    let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    for accept in ["text/event-stream", "application/x-ndjson"] {
+        let (faces, done) = stream_events(&server, &body, accept).await;
+        assert_eq!(done["faces"].as_u64().unwrap() as usize, faces.len(), "{done}");
+        assert_eq!(faces.len(), mesh.faces.len(), "{accept}");
+        for (i, (_, f)) in faces.iter().enumerate() {
+            assert_eq!(f["index"], i);
+            let streamed: Vec<[f32; 3]> = serde_json::from_value(f["vertices"].clone()).unwrap();
+            let face = mesh.faces[i].map(|v| mesh.vertices[v as usize]);
+            for (a, b) in streamed.iter().zip(&face) {
+                assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?}");
+            }
+        }
+        if faces.len() >= 20 {
+            let span = faces[faces.len() - 1].0 - faces[0].0;
+            assert!(span > Duration::from_millis(5), "all faces arrived at once ({span:?})");
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sixteen_concurrent_clients_are_batched() {
+    let server = Server::start(&[]);
+    let cloud = shape();
+    let tasks: Vec<_> = (0..16)
+        .map(|i| {
+            let body = points_json(&cloud, json!({"max_faces": 80, "seed": i, "temperature": 0.7}));
+            let url = server.url("/reconstruct");
+            tokio::spawn(async move {
+                let r = client().post(url).json(&body).send().await.unwrap();
+                (r.status(), r.bytes().await.unwrap())
+            })
+        })
+        .collect();
+    for t in tasks {
+        let (status, body) = t.await.unwrap();
+        assert_eq!(status, 200);
+        assert!(read_mesh(&body, Format::Gltf, &ReadLimits::default()).is_ok());
+    }
+    let c = client();
+    let count = server.metric(&c, "meshstream_batch_size_count").await;
+    let singles = server.metric(&c, "meshstream_batch_size_bucket{le=\"1.0\"}").await;
+    assert!(count > singles, "no batch held more than one sequence ({singles} of {count})");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_goes_away_frees_its_slot() {
+    let server = Server::start(&["--stream-buffer", "4"]);
+    let body = points_json(&shape(), json!({"max_faces": 400}));
+    let r = client()
+        .post(server.url("/reconstruct"))
+        .header("accept", "text/event-stream")
+        .json(&body)
+        .send()
+        .await
+        .unwrap();
+    let mut chunks = r.bytes_stream();
+    let _first = chunks.next().await;
+    let c = client();
+    assert_eq!(server.metric(&c, "meshstream_running_sequences").await, 1.0);
+    drop(chunks);
+    let t0 = Instant::now();
+    loop {
+        if server.metric(&c, "meshstream_running_sequences").await == 0.0 {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(1), "the slot is still taken");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
+    let server = Server::start(&["--max-points", "5000", "--max-body-bytes", "200000"]);
+    let c = client();
+    let post = |ct: &'static str, body: Vec<u8>, query: &'static str| {
+        let c = c.clone();
+        let url = server.url(&format!("/reconstruct{query}"));
+        async move {
+            let r = c.post(url).header("content-type", ct).body(body).send().await.unwrap();
+            let status = r.status().as_u16();
+            let v: Value = r.json().await.unwrap_or(Value::Null);
+            (status, v["error"]["code"].as_str().unwrap_or("").to_string(), v)
+        }
+    };
+    let json = "application/json";
+    let three = r#"[[0,0,0],[1,0,0],[0,1,0]]"#;
+    let cases: Vec<(&str, Vec<u8>, &str, u16, &str)> = vec![
+        (json, b"".to_vec(), "", 400, "malformed_body"),
+        (json, b"{\"points\": [".to_vec(), "", 400, "malformed_body"),
+        (json, br#"{"points": []}"#.to_vec(), "", 422, "invalid_input"),
+        (json, br#"{"points": [[1e39,0,0],[1,0,0],[0,1,0]]}"#.to_vec(), "", 422, "invalid_input"),
+        (json, format!(r#"{{"points": {three}, "max_faces": 0}}"#).into_bytes(), "", 422, "invalid_input"),
+        (json, format!(r#"{{"points": {three}, "max_faces": 100000}}"#).into_bytes(), "", 422, "invalid_input"),
+        (json, format!(r#"{{"points": {three}, "top_p": 2}}"#).into_bytes(), "", 422, "invalid_input"),
+        (json, format!(r#"{{"points": {three}, "format": "fbx"}}"#).into_bytes(), "", 422, "invalid_input"),
+        (json, format!(r#"{{"points": {three}, "colour": 1}}"#).into_bytes(), "", 422, "invalid_input"),
+        ("image/png", b"\x89PNG".to_vec(), "", 400, "unsupported_format"),
+        ("application/octet-stream", b"\x00garbage\x01".to_vec(), "", 400, "unsupported_format"),
+        ("application/ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\nend_header\n".to_vec(), "", 400, "malformed_body"),
+        ("model/obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n".to_vec(), "?max_faces=abc", 422, "invalid_input"),
+        ("model/obj", vec![b'v'; 300_000], "", 413, "too_large"),
+    ];
+    for (ct, body, query, status, code) in cases {
+        let (got, got_code, v) = post(ct, body.clone(), query).await;
+        assert_eq!((got, got_code.as_str()), (status, code), "{ct} {:?}: {v}", String::from_utf8_lossy(&body[..body.len().min(60)]));
+        assert!(!v["error"]["message"].as_str().unwrap_or("").is_empty());
+    }
+    let many: Vec<[f32; 3]> = (0..5001).map(|i| [i as f32, (i % 7) as f32, 0.5]).collect();
+    let (status, code, _) = post(json, serde_json::to_vec(&json!({"points": many})).unwrap(), "").await;
+    assert_eq!((status, code.as_str()), (422, "invalid_input"));
+
+    // Garbage of every kind: never a crash, never a 5xx.
+    let mut seed = 12345u64;
+    for round in 0..200 {
+        let len = (round * 37) % 3000;
+        let bytes: Vec<u8> = (0..len)
+            .map(|_| {
+                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (seed >> 56) as u8
+            })
+            .collect();
+        let ct = ["application/json", "application/ply", "model/obj", "model/stl", "model/gltf-binary", "application/octet-stream", "text/plain"][round % 7];
+        let (status, _, _) = post(ct, bytes, "").await;
+        assert!((400..500).contains(&status), "{ct}: {status}");
+    }
+    let r = c.get(server.url("/healthz")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert!(server.metric(&c, "meshstream_requests_rejected_total{reason=\"invalid_input\"}").await >= 1.0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overload_gets_429_with_retry_after() {
+    let server = Server::start(&["--max-running", "1", "--max-queue", "1", "--stream-buffer", "2"]);
+    let body = points_json(&shape(), json!({"max_faces": 400}));
+    // Two streams that are not read: one runs (stalled), one waits; the third is refused.
+    let mut held = Vec::new();
+    for _ in 0..2 {
+        let r = client()
+            .post(server.url("/reconstruct"))
+            .header("accept", "application/x-ndjson")
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        held.push(r);
+    }
+    let r = client().post(server.url("/reconstruct")).json(&body).send().await.unwrap();
+    assert_eq!(r.status(), 429);
+    assert!(r.headers().contains_key("retry-after"));
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["error"]["code"], "queue_full");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_lets_a_stream_finish_then_exits_0() {
+    let mut server = Server::start(&["--shutdown-grace", "20"]);
+    let body = points_json(&shape(), json!({"max_faces": 300}));
+    let r = client()
+        .post(server.url("/reconstruct"))
+        .header("accept", "application/x-ndjson")
+        .json(&body)
+        .send()
+        .await
+        .unwrap();
+    let mut chunks = r.bytes_stream();
+    let _first = chunks.next().await.unwrap().unwrap();
+    server.terminate();
+    let mut text = String::new();
+    while let Some(chunk) = chunks.next().await {
+        text.push_str(std::str::from_utf8(&chunk.unwrap()).unwrap());
+    }
+    let last: Value = serde_json::from_str(text.trim().lines().last().unwrap()).unwrap();
+    assert_eq!(last["type"], "done", "{last}");
+    // New requests are refused meanwhile or the port is closed; the process exits 0.
+    assert_eq!(server.wait_exit(Duration::from_secs(10)), Some(0));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_readiness_info_and_openapi() {
+    let server = Server::start(&[]);
+    let c = client();
+    assert_eq!(c.get(server.url("/healthz")).send().await.unwrap().status(), 200);
+    assert_eq!(c.get(server.url("/readyz")).send().await.unwrap().status(), 200);
+    let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert!(info["model"]["parameters"].as_u64().unwrap() > 0);
+    assert!(info["limits"]["max_faces"].as_u64().unwrap() > 0);
+    let api: Value = c.get(server.url("/openapi.json")).send().await.unwrap().json().await.unwrap();
+    assert!(api["paths"]["/reconstruct"]["post"].is_object());
+    assert!(api["components"]["schemas"]["ErrorBody"].is_object());
+    let r = c.get(server.url("/nope")).send().await.unwrap();
+    assert_eq!(r.status(), 404);
+}
