@@ -21,7 +21,11 @@ async fn reconstruct_glb(server: &Server, body: &Value) -> (reqwest::header::Hea
 }
 
 /// Face events of an SSE or NDJSON stream with their arrival times, and the final event.
-async fn stream_events(server: &Server, body: &Value, accept: &str) -> (Vec<(Instant, Value)>, Value) {
+async fn stream_events(
+    server: &Server,
+    body: &Value,
+    accept: &str,
+) -> (Vec<(Instant, Value)>, Value) {
     let r = client()
         .post(server.url("/reconstruct"))
         .header("accept", accept)
@@ -86,10 +90,13 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
     }
 
     // Other formats by option, and a raw upload of a mesh file with options in the query.
-    let (h, obj) = reconstruct_glb(&server, &points_json(&cloud, json!({"max_faces": 30, "format": "obj"}))).await;
+    let (h, obj) =
+        reconstruct_glb(&server, &points_json(&cloud, json!({"max_faces": 30, "format": "obj"})))
+            .await;
     assert_eq!(h["content-type"], "model/obj");
     assert!(read_mesh(&obj, Format::Obj, &ReadLimits::default()).is_ok());
-    let upload = write_mesh(&meshstream::mesh::primitives::cuboid([2.0, 1.0, 1.0]), Format::Ply).unwrap();
+    let upload =
+        write_mesh(&meshstream::mesh::primitives::cuboid([2.0, 1.0, 1.0]), Format::Ply).unwrap();
     let r = client()
         .post(server.url("/reconstruct?max_faces=20&format=stl"))
         .header("content-type", "application/ply")
@@ -198,24 +205,72 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (json, b"{\"points\": [".to_vec(), "", 400, "malformed_body"),
         (json, br#"{"points": []}"#.to_vec(), "", 422, "invalid_input"),
         (json, br#"{"points": [[1e39,0,0],[1,0,0],[0,1,0]]}"#.to_vec(), "", 422, "invalid_input"),
-        (json, format!(r#"{{"points": {three}, "max_faces": 0}}"#).into_bytes(), "", 422, "invalid_input"),
-        (json, format!(r#"{{"points": {three}, "max_faces": 100000}}"#).into_bytes(), "", 422, "invalid_input"),
-        (json, format!(r#"{{"points": {three}, "top_p": 2}}"#).into_bytes(), "", 422, "invalid_input"),
-        (json, format!(r#"{{"points": {three}, "format": "fbx"}}"#).into_bytes(), "", 422, "invalid_input"),
-        (json, format!(r#"{{"points": {three}, "colour": 1}}"#).into_bytes(), "", 422, "invalid_input"),
+        (
+            json,
+            format!(r#"{{"points": {three}, "max_faces": 0}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "max_faces": 100000}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "top_p": 2}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "format": "fbx"}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "colour": 1}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
         ("image/png", b"\x89PNG".to_vec(), "", 400, "unsupported_format"),
         ("application/octet-stream", b"\x00garbage\x01".to_vec(), "", 400, "unsupported_format"),
-        ("application/ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\nend_header\n".to_vec(), "", 400, "malformed_body"),
-        ("model/obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n".to_vec(), "?max_faces=abc", 422, "invalid_input"),
+        (
+            "application/ply",
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\nend_header\n".to_vec(),
+            "",
+            400,
+            "malformed_body",
+        ),
+        (
+            "model/obj",
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\n".to_vec(),
+            "?max_faces=abc",
+            422,
+            "invalid_input",
+        ),
         ("model/obj", vec![b'v'; 300_000], "", 413, "too_large"),
     ];
     for (ct, body, query, status, code) in cases {
         let (got, got_code, v) = post(ct, body.clone(), query).await;
-        assert_eq!((got, got_code.as_str()), (status, code), "{ct} {:?}: {v}", String::from_utf8_lossy(&body[..body.len().min(60)]));
+        assert_eq!(
+            (got, got_code.as_str()),
+            (status, code),
+            "{ct} {:?}: {v}",
+            String::from_utf8_lossy(&body[..body.len().min(60)])
+        );
         assert!(!v["error"]["message"].as_str().unwrap_or("").is_empty());
     }
     let many: Vec<[f32; 3]> = (0..5001).map(|i| [i as f32, (i % 7) as f32, 0.5]).collect();
-    let (status, code, _) = post(json, serde_json::to_vec(&json!({"points": many})).unwrap(), "").await;
+    let (status, code, _) =
+        post(json, serde_json::to_vec(&json!({"points": many})).unwrap(), "").await;
     assert_eq!((status, code.as_str()), (422, "invalid_input"));
 
     // Garbage of every kind: never a crash, never a 5xx.
@@ -228,13 +283,24 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
                 (seed >> 56) as u8
             })
             .collect();
-        let ct = ["application/json", "application/ply", "model/obj", "model/stl", "model/gltf-binary", "application/octet-stream", "text/plain"][round % 7];
+        let ct = [
+            "application/json",
+            "application/ply",
+            "model/obj",
+            "model/stl",
+            "model/gltf-binary",
+            "application/octet-stream",
+            "text/plain",
+        ][round % 7];
         let (status, _, _) = post(ct, bytes, "").await;
         assert!((400..500).contains(&status), "{ct}: {status}");
     }
     let r = c.get(server.url("/healthz")).send().await.unwrap();
     assert_eq!(r.status(), 200);
-    assert!(server.metric(&c, "meshstream_requests_rejected_total{reason=\"invalid_input\"}").await >= 1.0);
+    assert!(
+        server.metric(&c, "meshstream_requests_rejected_total{reason=\"invalid_input\"}").await
+            >= 1.0
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

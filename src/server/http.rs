@@ -37,8 +37,11 @@ pub struct AppState {
 
 #[derive(OpenApi)]
 #[openapi(
-    info(title = "meshstream", description = "Point clouds and meshes to artist-style meshes \
-        with the FACE method, streamed face by face."),
+    info(
+        title = "meshstream",
+        description = "Point clouds and meshes to artist-style meshes \
+        with the FACE method, streamed face by face."
+    ),
     paths(reconstruct, healthz, readyz, metrics, info),
     components(schemas(PointsBody, ErrorBody, FaceEvent, DoneEvent))
 )]
@@ -107,11 +110,8 @@ async fn reconstruct(
     headers: HeaderMap,
     body: Body,
 ) -> Response {
-    let id = headers
-        .get("x-request-id")
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or_default()
-        .to_string();
+    let id =
+        headers.get("x-request-id").and_then(|v| v.to_str().ok()).unwrap_or_default().to_string();
     match start(&state, &id, &uri, &headers, body).await {
         Ok((stream, format)) => respond(stream, format, &headers, id).await,
         Err(e) => {
@@ -191,7 +191,12 @@ fn streaming(headers: &HeaderMap) -> Option<Streaming> {
     }
 }
 
-async fn respond(stream: RequestStream, format: Format, headers: &HeaderMap, id: String) -> Response {
+async fn respond(
+    stream: RequestStream,
+    format: Format,
+    headers: &HeaderMap,
+    id: String,
+) -> Response {
     match streaming(headers) {
         Some(Streaming::Sse) => {
             let events = lines(stream, id).map(|line| {
@@ -242,7 +247,11 @@ fn lines(stream: RequestStream, id: String) -> impl Stream<Item = Line> {
     })
 }
 
-async fn mesh_response(stream: RequestStream, format: Format, id: String) -> Result<Response, ApiError> {
+async fn mesh_response(
+    stream: RequestStream,
+    format: Format,
+    id: String,
+) -> Result<Response, ApiError> {
     let done = stream.collect().await?;
     let bytes = write_mesh(&done.mesh, format).map_err(|e| {
         ApiError::internal(format!(
@@ -253,11 +262,8 @@ async fn mesh_response(stream: RequestStream, format: Format, id: String) -> Res
     })?;
     let done_event = DoneEvent::new(&id, &done.summary);
     tracing::info!(request_id = %id, faces = done_event.faces, total_ms = done_event.total_ms, "reconstructed");
-    let mut response = (
-        [(header::CONTENT_TYPE, format.content_type())],
-        Bytes::from(bytes),
-    )
-        .into_response();
+    let mut response =
+        ([(header::CONTENT_TYPE, format.content_type())], Bytes::from(bytes)).into_response();
     let h = response.headers_mut();
     let mut set = |name: &'static str, value: String| {
         if let Ok(v) = HeaderValue::from_str(&value) {
@@ -286,8 +292,12 @@ async fn readyz(State(state): State<AppState>) -> Response {
     if status.alive && status.accepting {
         "ready".into_response()
     } else {
-        ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "not_ready", "the engine is not accepting requests")
-            .into_response()
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "not_ready",
+            "the engine is not accepting requests",
+        )
+        .into_response()
     }
 }
 

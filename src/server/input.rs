@@ -102,15 +102,14 @@ pub fn parse_body(
     }
     let format = match Format::from_content_type(&essence) {
         Some(f) => f,
-        None if matches!(essence.as_str(), "" | "application/octet-stream") => {
-            Format::sniff(body).ok_or_else(|| {
+        None if matches!(essence.as_str(), "" | "application/octet-stream") => Format::sniff(body)
+            .ok_or_else(|| {
                 ApiError::new(
                     axum::http::StatusCode::BAD_REQUEST,
                     "unsupported_format",
                     "the body is not a PLY, OBJ, STL or glTF file",
                 )
-            })?
-        }
+            })?,
         None => {
             return Err(ApiError::new(
                 axum::http::StatusCode::BAD_REQUEST,
@@ -240,6 +239,9 @@ mod tests {
         assert_eq!(parse(Some("image/png"), obj).unwrap_err().code, "unsupported_format");
         assert_eq!(parse(None, b"\x00\x01garbage").unwrap_err().code, "unsupported_format");
         assert_eq!(parse(Some("model/obj"), b"").unwrap_err().code, "invalid_input");
-        assert_eq!(parse(Some("application/ply"), b"ply\nformat nonsense\n").unwrap_err().status, 400);
+        assert_eq!(
+            parse(Some("application/ply"), b"ply\nformat nonsense\n").unwrap_err().status,
+            400
+        );
     }
 }

@@ -105,9 +105,7 @@ pub async fn serve(
     let http_server = axum::serve(http_listener, http::router(state))
         .with_graceful_shutdown(closed(closing_rx.clone()));
     let servers = async {
-        http_server
-            .await
-            .map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })
+        http_server.await.map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })
     };
     // Connections that outlive the grace period (a client that never reads) do not hold the
     // process: the engine has failed their requests by then.

@@ -36,7 +36,11 @@ impl Server {
                 .find_map(|w| w.strip_prefix(&format!("{name}=")).map(str::to_string))
         };
         let http = field("http").unwrap_or_else(|| panic!("no address in {line:?}"));
-        Server { child, http: format!("http://{http}"), grpc: field("grpc").map(|a| format!("http://{a}")) }
+        Server {
+            child,
+            http: format!("http://{http}"),
+            grpc: field("grpc").map(|a| format!("http://{a}")),
+        }
     }
 
     pub fn url(&self, path: &str) -> String {
