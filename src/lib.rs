@@ -7,5 +7,6 @@
 pub mod mesh;
 pub mod metrics;
 pub mod model;
+pub mod render;
 pub mod tokenize;
 pub mod train;
