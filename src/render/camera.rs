@@ -51,14 +51,15 @@ impl Camera {
                 self.azimuth_deg, self.elevation_deg
             ));
         }
-        if !(self.distance.is_finite() && self.distance > 0.0) {
-            return bad(format!("distance must be positive and finite, not {}", self.distance));
-        }
+        // The field of view first: a distance derived from a bad one is bad for that reason.
         if !(self.fov_y_deg > 0.0 && self.fov_y_deg < 180.0) {
             return bad(format!(
                 "field of view must be in (0, 180) degrees, not {}",
                 self.fov_y_deg
             ));
+        }
+        if !(self.distance.is_finite() && self.distance > 0.0) {
+            return bad(format!("distance must be positive and finite, not {}", self.distance));
         }
         Ok(())
     }
