@@ -58,7 +58,10 @@ fn draw_faces(
             Coloring::Parts => part_color(parts.get(f).copied().unwrap_or(0)),
         };
         let color = shade(base, light.intensity(normal));
-        let (corners, n) = clip_near(face.map(|i| camera_space[i as usize]));
+        // `mesh.validate()` checked every index; a bad one would still only skip the face.
+        let [a, b, c] = face.map(|i| camera_space.get(i as usize).copied());
+        let (Some(a), Some(b), Some(c)) = (a, b, c) else { continue };
+        let (corners, n) = clip_near([a, b, c]);
         let screen = corners.map(|c| view.project(c));
         // The clipped polygon is convex: a fan of its corners covers it.
         for k in 1..n.saturating_sub(1) {
