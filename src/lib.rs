@@ -9,5 +9,6 @@ pub mod mesh;
 pub mod metrics;
 pub mod model;
 pub mod server;
+pub mod render;
 pub mod tokenize;
 pub mod train;

@@ -31,6 +31,8 @@ enum Command {
     Serve(commands::serve::ServeArgs),
     /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
     Eval(commands::eval::EvalArgs),
+    /// Draw a mesh or point cloud to an image (PNG, JPEG, WebP): a grid of views around it.
+    Render(commands::render::RenderArgs),
     /// Benchmarks that print a table (run them in a release build).
     #[command(subcommand)]
     Bench(commands::bench::BenchCommand),
@@ -44,6 +46,7 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(args) => commands::eval::run(&args),
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
         Command::Serve(args) => commands::serve::run(&args),
+        Command::Render(args) => commands::render::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }

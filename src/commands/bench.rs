@@ -9,6 +9,7 @@ use meshstream::mesh::{
     Format, ReadLimits, farthest_point_sampling, primitives, read_mesh, sample_surface, write_mesh,
 };
 use meshstream::metrics::{MetricOptions, mesh_distances};
+use meshstream::render::{RenderOptions, render_grid};
 use meshstream::tokenize::{Quantizer, tokenize_mesh};
 
 #[derive(Subcommand)]
@@ -21,12 +22,19 @@ pub enum BenchCommand {
     },
     /// Decoding speed of the FACE model (random weights) against the per-coordinate baseline.
     Decode(super::bench_decode::DecodeBenchArgs),
+    /// Software rendering of a 5,000-face mesh at a few image sizes.
+    Render {
+        /// Minimum time spent on each measurement, in seconds.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+    },
 }
 
 pub fn run(cmd: &BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Mesh { seconds } => bench_mesh(Duration::from_secs_f64(*seconds)),
         BenchCommand::Decode(args) => super::bench_decode::run(args),
+        BenchCommand::Render { seconds } => bench_render(Duration::from_secs_f64(*seconds)),
     }
 }
 
@@ -89,6 +97,28 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.1} pairs/s", 1.0 / t.as_secs_f64()),
     ]);
+    println!("{table}");
+    Ok(())
+}
+
+fn bench_render(budget: Duration) -> anyhow::Result<()> {
+    // 64 x 40 UV sphere: 4,992 faces, about the size of a large artist mesh.
+    let mesh = primitives::uv_sphere(1.0, 64, 40);
+    let faces = mesh.faces.len();
+    let mut table = super::table();
+    table.set_header(["measurement", "input", "time per image", "throughput"]);
+    for side in [128, 256, 512] {
+        let options = RenderOptions { width: side, height: side, ..RenderOptions::default() };
+        for (name, views) in [("render one view", 1), ("render a grid of 4 views", 4)] {
+            let t = time_per_run(budget, || render_grid(&mesh, &options, views));
+            table.add_row([
+                name.to_string(),
+                format!("{faces} faces, {side}x{side} per view"),
+                format!("{:.2} ms", t.as_secs_f64() * 1e3),
+                format!("{:.0} views/s", f64::from(views) / t.as_secs_f64()),
+            ]);
+        }
+    }
     println!("{table}");
     Ok(())
 }

@@ -5,6 +5,7 @@ pub mod bench_decode;
 pub mod convert;
 pub mod eval;
 pub mod reconstruct;
+pub mod render;
 pub mod sample;
 pub mod serve;
 pub mod stats;

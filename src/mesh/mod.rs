@@ -130,7 +130,8 @@ fn cross_of([a, b, c]: [[f32; 3]; 3]) -> [f32; 3] {
     [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
 }
 
-fn normalized(v: [f32; 3]) -> [f32; 3] {
+/// `v` scaled to unit length, or zero when it has no direction (zero or non-finite length).
+pub fn normalized(v: [f32; 3]) -> [f32; 3] {
     let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
     if len > 0.0 && len.is_finite() { [v[0] / len, v[1] / len, v[2] / len] } else { [0.0; 3] }
 }
