@@ -8,7 +8,7 @@ pub mod engine;
 pub mod mesh;
 pub mod metrics;
 pub mod model;
-pub mod server;
 pub mod render;
+pub mod server;
 pub mod tokenize;
 pub mod train;

@@ -28,6 +28,8 @@ pub struct ServeArgs {
     device: String,
     #[arg(long, env = "MESHSTREAM_HTTP_ADDR", default_value = "0.0.0.0:8080")]
     http_addr: SocketAddr,
+    #[arg(long, env = "MESHSTREAM_GRPC_ADDR", default_value = "0.0.0.0:50051")]
+    grpc_addr: SocketAddr,
     #[arg(long, env = "MESHSTREAM_LOG_FORMAT", value_enum, default_value = "text")]
     log_format: LogFormat,
     /// Sequences decoded together.
@@ -103,6 +105,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     let engine = Engine::start(model, config, Arc::new(Metrics::default()))?;
     let serve_config = ServeConfig {
         http_addr: args.http_addr,
+        grpc_addr: args.grpc_addr,
         limits: InputLimits {
             max_points: args.max_points,
             read: ReadLimits {

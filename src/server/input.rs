@@ -60,7 +60,7 @@ pub struct InputLimits {
 }
 
 impl ReconstructOptions {
-    fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
+    pub fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
         let format = match self.format.as_deref() {
             None => Format::Gltf,
             Some(name) => name.parse::<Format>().map_err(|_| {
@@ -97,34 +97,73 @@ pub fn parse_body(
     if essence == "application/json" {
         return parse_json(body, limits);
     }
+    let format = match Format::from_content_type(&essence) {
+        Some(f) => Some(f),
+        None if matches!(essence.as_str(), "" | "application/octet-stream") => None,
+        None => {
+            return Err(unsupported(format!(
+                "Content-Type {content_type:?}: send application/json, a mesh type \
+                 (model/gltf-binary, model/obj, model/stl, application/ply) or \
+                 application/octet-stream"
+            )));
+        }
+    };
+    query.checked(parse_file(body, format, limits)?)
+}
+
+/// A point cloud or mesh file in `format`, or in the format its bytes show.
+pub fn parse_file(
+    body: &[u8],
+    format: Option<Format>,
+    limits: &InputLimits,
+) -> Result<Mesh, ApiError> {
     if body.is_empty() {
         return Err(ApiError::invalid("the body is empty: send points or a mesh"));
     }
-    let format = match Format::from_content_type(&essence) {
-        Some(f) => f,
-        None if matches!(essence.as_str(), "" | "application/octet-stream") => Format::sniff(body)
-            .ok_or_else(|| {
-                ApiError::new(
-                    axum::http::StatusCode::BAD_REQUEST,
-                    "unsupported_format",
-                    "the body is not a PLY, OBJ, STL or glTF file",
-                )
-            })?,
-        None => {
-            return Err(ApiError::new(
-                axum::http::StatusCode::BAD_REQUEST,
-                "unsupported_format",
-                format!(
-                    "Content-Type {content_type:?}: send application/json, a mesh type \
-                     (model/gltf-binary, model/obj, model/stl, application/ply) or \
-                     application/octet-stream"
-                ),
-            ));
-        }
-    };
+    let format = format
+        .or_else(|| Format::sniff(body))
+        .ok_or_else(|| unsupported("the body is not a PLY, OBJ, STL or glTF file"))?;
     let mesh = read_mesh(body, format, &limits.read)?;
     check_points(&mesh, limits)?;
-    query.checked(mesh)
+    Ok(mesh)
+}
+
+fn unsupported(message: impl Into<String>) -> ApiError {
+    ApiError::new(axum::http::StatusCode::BAD_REQUEST, "unsupported_format", message)
+}
+
+/// A point cloud from flat (x, y, z) triples, with optional normals.
+pub fn point_cloud(
+    positions: &[f32],
+    normals: &[f32],
+    limits: &InputLimits,
+) -> Result<Mesh, ApiError> {
+    if !positions.len().is_multiple_of(3) || !normals.len().is_multiple_of(3) {
+        return Err(ApiError::invalid("positions and normals come in (x, y, z) triples"));
+    }
+    let triples =
+        |v: &[f32]| -> Vec<[f32; 3]> { v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() };
+    let normals = (!normals.is_empty()).then(|| triples(normals));
+    points_mesh(triples(positions), normals, limits)
+}
+
+fn points_mesh(
+    points: Vec<[f32; 3]>,
+    normals: Option<Vec<[f32; 3]>>,
+    limits: &InputLimits,
+) -> Result<Mesh, ApiError> {
+    if let Some(normals) = &normals
+        && normals.len() != points.len()
+    {
+        return Err(ApiError::invalid(format!(
+            "{} normals for {} points: give one per point, or none",
+            normals.len(),
+            points.len()
+        )));
+    }
+    let mesh = Mesh { vertices: points, faces: Vec::new(), normals };
+    check_points(&mesh, limits)?;
+    Ok(mesh)
 }
 
 fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiError> {
@@ -135,17 +174,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
             ApiError::malformed(format!("the body is not JSON: {e}"))
         }
     })?;
-    if let Some(normals) = &b.normals
-        && normals.len() != b.points.len()
-    {
-        return Err(ApiError::invalid(format!(
-            "{} normals for {} points: give one per point, or none",
-            normals.len(),
-            b.points.len()
-        )));
-    }
-    let mesh = Mesh { vertices: b.points, faces: Vec::new(), normals: b.normals };
-    check_points(&mesh, limits)?;
+    let mesh = points_mesh(b.points, b.normals, limits)?;
     let options = ReconstructOptions {
         max_faces: b.max_faces,
         temperature: b.temperature,

@@ -2,8 +2,18 @@
 
 mod error;
 mod events;
+mod grpc;
 mod http;
 mod input;
+
+/// The gRPC API's messages, client and server (`proto/meshstream/v1/meshstream.proto`).
+pub mod proto {
+    tonic::include_proto!("meshstream.v1");
+
+    /// Encoded descriptors of the API, for server reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        include_bytes!(concat!(env!("OUT_DIR"), "/meshstream_descriptor.bin"));
+}
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -15,12 +25,14 @@ use serde_json::json;
 use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
+use tokio_stream::wrappers::TcpListenerStream;
 
 use crate::engine::{Conditioning, Engine, PreparedPoints};
 use crate::mesh::Mesh;
 
 pub use error::ApiError;
 pub use input::InputLimits;
+use proto::mesh_generator_server::MeshGeneratorServer;
 
 #[derive(Debug, Error)]
 pub enum ServerError {
@@ -33,6 +45,7 @@ pub enum ServerError {
 #[derive(Debug, Clone)]
 pub struct ServeConfig {
     pub http_addr: SocketAddr,
+    pub grpc_addr: SocketAddr,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
@@ -80,6 +93,10 @@ pub async fn serve(
         .await
         .map_err(|source| ServerError::Bind { addr: cfg.http_addr, source })?;
     let http_addr = http_listener.local_addr().unwrap_or(cfg.http_addr);
+    let grpc_listener = TcpListener::bind(cfg.grpc_addr)
+        .await
+        .map_err(|source| ServerError::Bind { addr: cfg.grpc_addr, source })?;
+    let grpc_addr = grpc_listener.local_addr().unwrap_or(cfg.grpc_addr);
     let state = http::AppState {
         engine: engine.clone(),
         limits: cfg.limits,
@@ -87,8 +104,28 @@ pub async fn serve(
         request_timeout: cfg.request_timeout,
         info: Arc::new(info_document(&engine, &cfg)),
     };
-    println!("meshstream listening: http={http_addr}");
-    tracing::info!(%http_addr, "listening");
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<MeshGeneratorServer<grpc::GrpcService>>().await;
+    // v1 and the older v1alpha, which some clients still ask for first.
+    let reflection_builder = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_error = |e: tonic_reflection::server::Error| ServerError::Serve {
+        what: "gRPC reflection",
+        message: e.to_string(),
+    };
+    let reflection = reflection_builder().build_v1().map_err(reflection_error)?;
+    let reflection_alpha = reflection_builder().build_v1alpha().map_err(reflection_error)?;
+    let generator = MeshGeneratorServer::new(grpc::GrpcService {
+        engine: engine.clone(),
+        limits: cfg.limits,
+        request_timeout: cfg.request_timeout,
+    })
+    .max_decoding_message_size(cfg.max_body_bytes);
+    println!("meshstream listening: http={http_addr} grpc={grpc_addr}");
+    tracing::info!(%http_addr, %grpc_addr, "listening");
 
     let (closing_tx, closing_rx) = watch::channel(false);
     let grace = cfg.shutdown_grace;
@@ -97,6 +134,7 @@ pub async fn serve(
         shutdown.await;
         tracing::info!(grace_s = grace.as_secs_f64(), "shutting down: finishing accepted requests");
         signal_engine.shutdown(grace);
+        health.set_not_serving::<MeshGeneratorServer<grpc::GrpcService>>().await;
         let _ = closing_tx.send(true);
     });
     let closed = |mut rx: watch::Receiver<bool>| async move {
@@ -104,8 +142,19 @@ pub async fn serve(
     };
     let http_server = axum::serve(http_listener, http::router(state))
         .with_graceful_shutdown(closed(closing_rx.clone()));
+    let grpc_server = tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(reflection_alpha)
+        .add_service(generator)
+        .serve_with_incoming_shutdown(
+            TcpListenerStream::new(grpc_listener),
+            closed(closing_rx.clone()),
+        );
     let servers = async {
-        http_server.await.map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })
+        let (http, grpc) = tokio::join!(http_server, grpc_server);
+        http.map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })?;
+        grpc.map_err(|e| ServerError::Serve { what: "gRPC", message: e.to_string() })
     };
     // Connections that outlive the grace period (a client that never reads) do not hold the
     // process: the engine has failed their requests by then.

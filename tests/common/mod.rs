@@ -12,7 +12,7 @@ use meshstream::mesh::primitives::{cuboid, uv_sphere};
 pub struct Server {
     pub child: Child,
     pub http: String,
-    pub grpc: Option<String>,
+    pub grpc: String,
 }
 
 impl Server {
@@ -21,6 +21,7 @@ impl Server {
         let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
         let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
             .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
+            .args(["--grpc-addr", "127.0.0.1:0"])
             .args(extra)
             .env("MESHSTREAM_LOG", "warn")
             .stdout(Stdio::piped())
@@ -36,11 +37,8 @@ impl Server {
                 .find_map(|w| w.strip_prefix(&format!("{name}=")).map(str::to_string))
         };
         let http = field("http").unwrap_or_else(|| panic!("no address in {line:?}"));
-        Server {
-            child,
-            http: format!("http://{http}"),
-            grpc: field("grpc").map(|a| format!("http://{a}")),
-        }
+        let grpc = field("grpc").unwrap_or_else(|| panic!("no gRPC address in {line:?}"));
+        Server { child, http: format!("http://{http}"), grpc: format!("http://{grpc}") }
     }
 
     pub fn url(&self, path: &str) -> String {

@@ -1,0 +1,181 @@
+//! The gRPC interface (tonic): `meshstream.v1.MeshGenerator/Reconstruct`, plus the standard
+//! health service and server reflection (so `grpcurl` works without the proto file).
+
+use std::collections::VecDeque;
+use std::pin::Pin;
+use std::time::{Duration, Instant};
+
+use futures_util::{Stream, stream};
+use tonic::{Request, Response, Status};
+
+use crate::engine::{Engine, Event, RequestStream, Summary};
+use crate::mesh::Format;
+
+use super::error::ApiError;
+use super::input::{InputLimits, ReconstructOptions, parse_file, point_cloud};
+use super::prepare;
+use super::proto::mesh_generator_server::MeshGenerator;
+use super::proto::{
+    Face, FaceChunk, ReconstructRequest, ReconstructResponse, Stats, reconstruct_request,
+    reconstruct_response,
+};
+
+/// Faces sent in one message at most, when several are waiting.
+const MAX_FACES_PER_MESSAGE: usize = 64;
+
+pub struct GrpcService {
+    pub engine: Engine,
+    pub limits: InputLimits,
+    pub request_timeout: Duration,
+}
+
+impl From<ApiError> for Status {
+    fn from(e: ApiError) -> Self {
+        let message = format!("{}: {}", e.code, e.message);
+        match e.status.as_u16() {
+            429 => Status::resource_exhausted(message),
+            503 => Status::unavailable(message),
+            504 => Status::deadline_exceeded(message),
+            400..=499 => Status::invalid_argument(message),
+            _ => Status::internal(message),
+        }
+    }
+}
+
+type ResponseStream = Pin<Box<dyn Stream<Item = Result<ReconstructResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl MeshGenerator for GrpcService {
+    type ReconstructStream = ResponseStream;
+
+    async fn reconstruct(
+        &self,
+        request: Request<ReconstructRequest>,
+    ) -> Result<Response<ResponseStream>, Status> {
+        let id = request
+            .metadata()
+            .get("x-request-id")
+            .and_then(|v| v.to_str().ok())
+            .filter(|v| !v.is_empty() && v.len() <= 128)
+            .map_or_else(|| uuid::Uuid::new_v4().to_string(), str::to_string);
+        let metrics = self.engine.metrics().clone();
+        let stream = self.start(&id, request.into_inner()).await.inspect_err(|e| {
+            // The engine counts its own refusals; these are the ones before it.
+            if e.status.as_u16() != 429 && e.status.as_u16() != 503 {
+                metrics.reject(e.code);
+            }
+            tracing::info!(request_id = %id, code = e.code, "refused: {}", e.message);
+        })?;
+        let mut response = Response::new(Box::pin(responses(stream, id.clone())) as ResponseStream);
+        if let Ok(v) = id.parse() {
+            response.metadata_mut().insert("x-request-id", v);
+        }
+        Ok(response)
+    }
+}
+
+impl GrpcService {
+    async fn start(
+        &self,
+        id: &str,
+        request: ReconstructRequest,
+    ) -> Result<RequestStream, ApiError> {
+        let options = request.options.unwrap_or_default();
+        let options = ReconstructOptions {
+            max_faces: options.max_faces.map(|n| n as usize),
+            temperature: options.temperature,
+            top_k: options.top_k.map(|k| k as usize),
+            top_p: options.top_p,
+            seed: options.seed,
+            format: None,
+        };
+        let (limits, engine) = (self.limits, self.engine.clone());
+        let (parsed, prepared) = tokio::task::spawn_blocking(move || {
+            let mesh = match request.input {
+                Some(reconstruct_request::Input::Points(p)) => {
+                    point_cloud(&p.positions, &p.normals, &limits)?
+                }
+                Some(reconstruct_request::Input::File(f)) => {
+                    let format = match f.format.as_str() {
+                        "" => None,
+                        name => Some(name.parse::<Format>().map_err(|_| {
+                            ApiError::invalid(format!("format {name:?}: use ply, obj, stl or glb"))
+                        })?),
+                    };
+                    parse_file(&f.data, format, &limits)?
+                }
+                None => return Err(ApiError::invalid("give points or a file")),
+            };
+            let parsed = options.checked(mesh)?;
+            let prepared = prepare(&engine, &parsed.input, parsed.seed)?;
+            Ok((parsed, prepared))
+        })
+        .await
+        .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))??;
+        let request = crate::engine::Request {
+            id: id.to_string(),
+            conditioning: prepared,
+            options: parsed.decode,
+            deadline: Some(Instant::now() + self.request_timeout),
+        };
+        Ok(self.engine.submit(request)?)
+    }
+}
+
+/// The request's events as messages: the faces that are waiting, in one message, then the
+/// stats. Dropping it (the client went away) cancels the request.
+fn responses(
+    stream: RequestStream,
+    id: String,
+) -> impl Stream<Item = Result<ReconstructResponse, Status>> {
+    let state = (Some(stream), VecDeque::new());
+    stream::unfold(state, move |(mut stream, mut ready)| {
+        let id = id.clone();
+        async move {
+            loop {
+                if let Some(message) = ready.pop_front() {
+                    return Some((message, (stream, ready)));
+                }
+                let events = stream.as_mut()?.next_many(MAX_FACES_PER_MESSAGE).await;
+                if events.is_empty() {
+                    return None;
+                }
+                let mut faces = Vec::new();
+                let mut last = None;
+                for event in events {
+                    match event {
+                        Event::Face(f) => faces.push(Face {
+                            index: f.index as u32,
+                            vertices: f.vertices.iter().flatten().copied().collect(),
+                        }),
+                        Event::Finished(summary) => last = Some(Ok(done(&id, &summary))),
+                        Event::Failed(e) => last = Some(Err(Status::from(ApiError::from(e)))),
+                    }
+                }
+                if !faces.is_empty() {
+                    let event = reconstruct_response::Event::Faces(FaceChunk { faces });
+                    ready.push_back(Ok(ReconstructResponse { event: Some(event) }));
+                }
+                if let Some(last) = last {
+                    ready.push_back(last);
+                    stream = None;
+                }
+            }
+        }
+    })
+}
+
+fn done(id: &str, s: &Summary) -> ReconstructResponse {
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let stats = Stats {
+        request_id: id.to_string(),
+        faces: s.faces as u32,
+        finish_reason: s.finish.name().to_string(),
+        queued_ms: ms(s.queued),
+        encode_ms: ms(s.prepare),
+        decode_ms: ms(s.decode),
+        time_to_first_face_ms: s.time_to_first_face.map(ms),
+        total_ms: ms(s.total),
+    };
+    ReconstructResponse { event: Some(reconstruct_response::Event::Done(stats)) }
+}
