@@ -4,6 +4,7 @@
 //! [`mesh`]. The conventions every module shares (normalization, ZYX order, tokens, metrics)
 //! are those of `DESIGN.md`.
 
+pub mod baseline;
 pub mod mesh;
 pub mod metrics;
 pub mod model;

@@ -27,6 +27,8 @@ enum Command {
     Sample(commands::sample::SampleArgs),
     /// Reconstruct a clean mesh from a point cloud or a dense mesh with a FACE model.
     Reconstruct(commands::reconstruct::ReconstructArgs),
+    /// A training-free baseline (convex hull or Poisson) from the same input and face budget.
+    Baseline(commands::baseline::BaselineArgs),
     /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
     Eval(commands::eval::EvalArgs),
     /// Benchmarks that print a table (run them in a release build).
@@ -41,6 +43,7 @@ fn main() -> anyhow::Result<()> {
         Command::Sample(args) => commands::sample::run(&args),
         Command::Eval(args) => commands::eval::run(&args),
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
+        Command::Baseline(args) => commands::baseline::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }
