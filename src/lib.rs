@@ -4,6 +4,7 @@
 //! [`train`]), with [`metrics`] beside [`mesh`]. The conventions every module shares
 //! (normalization, ZYX order, tokens, metrics) are those of `DESIGN.md`.
 
+pub mod baseline;
 pub mod engine;
 pub mod mesh;
 pub mod metrics;

@@ -29,6 +29,8 @@ enum Command {
     Reconstruct(commands::reconstruct::ReconstructArgs),
     /// Serve HTTP and gRPC on one engine (continuous batching, faces streamed as decoded).
     Serve(commands::serve::ServeArgs),
+    /// A training-free baseline (convex hull or Poisson) from the same input and face budget.
+    Baseline(commands::baseline::BaselineArgs),
     /// Chamfer and Hausdorff distances of predicted meshes against ground truth.
     Eval(commands::eval::EvalArgs),
     /// Draw a mesh or point cloud to an image (PNG, JPEG, WebP): a grid of views around it.
@@ -47,6 +49,7 @@ fn main() -> anyhow::Result<()> {
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
         Command::Serve(args) => commands::serve::run(&args),
         Command::Render(args) => commands::render::run(&args),
+        Command::Baseline(args) => commands::baseline::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }

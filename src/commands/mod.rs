@@ -1,5 +1,6 @@
 //! One module per subcommand of `meshstream`.
 
+pub mod baseline;
 pub mod bench;
 pub mod bench_decode;
 pub mod convert;
@@ -13,12 +14,24 @@ pub mod stats;
 use std::path::Path;
 
 use anyhow::Context;
-use meshstream::mesh::{Mesh, ReadLimits, read_mesh_file};
+use meshstream::mesh::{Mesh, Normalization, ReadLimits, encoder_points, read_mesh_file};
 
 /// Reads a mesh with the default limits, naming the file in the error.
 pub fn load_mesh(path: &Path) -> anyhow::Result<Mesh> {
     read_mesh_file(path, &ReadLimits::default())
         .with_context(|| format!("reading {}", path.display()))
+}
+
+/// What a reconstruction sees of an input file: `n` points with normals taken from it as
+/// [`encoder_points`] does, in its normalized frame, and the normalization that puts a result
+/// back in the file's coordinates. `reconstruct` and `baseline` share it so that the model and
+/// the baselines get the same points.
+pub fn input_points(path: &Path, n: usize, seed: u64) -> anyhow::Result<(Mesh, Normalization)> {
+    let input = load_mesh(path)?;
+    let normalization = Normalization::fit(&input.vertices).context("normalizing the input")?;
+    let cloud = encoder_points(&normalization.apply_mesh(&input), n, seed)
+        .context("preparing the input points")?;
+    Ok((cloud, normalization))
 }
 
 /// A table printed as Markdown, so figures paste straight into notes and model cards.

@@ -5,11 +5,11 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use meshstream::mesh::{Format, Normalization, encoder_points, write_mesh_file};
+use meshstream::mesh::{Format, write_mesh_file};
 use meshstream::model::{GenerateOptions, SamplingParams, checkpoint, generate, parse_device};
 use meshstream::tokenize::{Quantizer, detokenize};
 
-use super::load_mesh;
+use super::input_points;
 
 #[derive(Args)]
 pub struct ReconstructArgs {
@@ -48,10 +48,7 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let model = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let cfg = model.config().clone();
-    let input = load_mesh(&args.input)?;
-    let normalization = Normalization::fit(&input.vertices).context("normalizing the input")?;
-    let cloud = encoder_points(&normalization.apply_mesh(&input), cfg.num_points, args.seed)
-        .context("preparing the encoder's points")?;
+    let (cloud, normalization) = input_points(&args.input, cfg.num_points, args.seed)?;
     let start = Instant::now();
     let latents = model.encode_point_cloud(&cloud)?;
     let options = GenerateOptions {
