@@ -22,6 +22,9 @@ pub enum BenchCommand {
     },
     /// Decoding speed of the FACE model (random weights) against the per-coordinate baseline.
     Decode(super::bench_decode::DecodeBenchArgs),
+    /// A real server in this process under 1, 4 and 16 concurrent gRPC clients: throughput
+    /// and time to first face.
+    Serve(super::bench_serve::ServeBenchArgs),
     /// Software rendering of a 5,000-face mesh at a few image sizes.
     Render {
         /// Minimum time spent on each measurement, in seconds.
@@ -34,6 +37,7 @@ pub fn run(cmd: &BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Mesh { seconds } => bench_mesh(Duration::from_secs_f64(*seconds)),
         BenchCommand::Decode(args) => super::bench_decode::run(args),
+        BenchCommand::Serve(args) => super::bench_serve::run(args),
         BenchCommand::Render { seconds } => bench_render(Duration::from_secs_f64(*seconds)),
     }
 }

@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::ReadLimits;
 use meshstream::model::{checkpoint, parse_device};
-use meshstream::server::{InputLimits, ServeConfig, serve};
+use meshstream::server::{InputLimits, Listeners, ServeConfig, serve};
 use tracing_subscriber::EnvFilter;
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -120,7 +120,17 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         model_dir: args.model.clone(),
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    runtime.block_on(serve(engine, serve_config, termination()))?;
+    runtime.block_on(async {
+        let listeners = Listeners::bind(&serve_config).await?;
+        // Tests and scripts read the ports from this line.
+        let addr = |a: Option<SocketAddr>| a.map_or_else(|| "?".into(), |a| a.to_string());
+        println!(
+            "meshstream listening: http={} grpc={}",
+            addr(listeners.http_addr()),
+            addr(listeners.grpc_addr())
+        );
+        serve(engine, serve_config, listeners, termination()).await
+    })?;
     Ok(())
 }
 

@@ -82,21 +82,38 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
     })
 }
 
+/// The two listening sockets, bound before serving so that callers can learn the ports
+/// (a port of 0 picks a free one).
+pub struct Listeners {
+    http: TcpListener,
+    grpc: TcpListener,
+}
+
+impl Listeners {
+    pub async fn bind(cfg: &ServeConfig) -> Result<Self, ServerError> {
+        let bind = |addr: SocketAddr| async move {
+            TcpListener::bind(addr).await.map_err(|source| ServerError::Bind { addr, source })
+        };
+        Ok(Self { http: bind(cfg.http_addr).await?, grpc: bind(cfg.grpc_addr).await? })
+    }
+
+    pub fn http_addr(&self) -> Option<SocketAddr> {
+        self.http.local_addr().ok()
+    }
+
+    pub fn grpc_addr(&self) -> Option<SocketAddr> {
+        self.grpc.local_addr().ok()
+    }
+}
+
 /// Serves until `shutdown` resolves, then stops accepting, lets accepted requests finish for
-/// the grace period, and returns. Prints the bound addresses on stdout once listening.
+/// the grace period, and returns once the engine has stopped.
 pub async fn serve(
     engine: Engine,
     cfg: ServeConfig,
+    listeners: Listeners,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    let http_listener = TcpListener::bind(cfg.http_addr)
-        .await
-        .map_err(|source| ServerError::Bind { addr: cfg.http_addr, source })?;
-    let http_addr = http_listener.local_addr().unwrap_or(cfg.http_addr);
-    let grpc_listener = TcpListener::bind(cfg.grpc_addr)
-        .await
-        .map_err(|source| ServerError::Bind { addr: cfg.grpc_addr, source })?;
-    let grpc_addr = grpc_listener.local_addr().unwrap_or(cfg.grpc_addr);
     let state = http::AppState {
         engine: engine.clone(),
         limits: cfg.limits,
@@ -124,8 +141,7 @@ pub async fn serve(
         request_timeout: cfg.request_timeout,
     })
     .max_decoding_message_size(cfg.max_body_bytes);
-    println!("meshstream listening: http={http_addr} grpc={grpc_addr}");
-    tracing::info!(%http_addr, %grpc_addr, "listening");
+    tracing::info!(http_addr = ?listeners.http_addr(), grpc_addr = ?listeners.grpc_addr(), "listening");
 
     let (closing_tx, closing_rx) = watch::channel(false);
     let grace = cfg.shutdown_grace;
@@ -140,7 +156,7 @@ pub async fn serve(
     let closed = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|closing| *closing).await;
     };
-    let http_server = axum::serve(http_listener, http::router(state))
+    let http_server = axum::serve(listeners.http, http::router(state))
         .with_graceful_shutdown(closed(closing_rx.clone()));
     let grpc_server = tonic::transport::Server::builder()
         .add_service(health_service)
@@ -148,7 +164,7 @@ pub async fn serve(
         .add_service(reflection_alpha)
         .add_service(generator)
         .serve_with_incoming_shutdown(
-            TcpListenerStream::new(grpc_listener),
+            TcpListenerStream::new(listeners.grpc),
             closed(closing_rx.clone()),
         );
     let servers = async {
