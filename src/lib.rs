@@ -4,11 +4,12 @@
 //! [`train`]), with [`metrics`] beside [`mesh`]. The conventions every module shares
 //! (normalization, ZYX order, tokens, metrics) are those of `DESIGN.md`.
 
+pub mod diffusion;
 pub mod engine;
 pub mod mesh;
 pub mod metrics;
 pub mod model;
-pub mod server;
 pub mod render;
+pub mod server;
 pub mod tokenize;
 pub mod train;
