@@ -155,8 +155,13 @@ impl Dinov2Encoder {
         // the batch, so it takes one image at a time.
         let per_image = (0..x.dim(0)?)
             .map(|i| {
-                let tokens =
-                    self.vit.get_intermediate_layers(&x.narrow(0, i, 1)?, &[last], false, false, true)?;
+                let tokens = self.vit.get_intermediate_layers(
+                    &x.narrow(0, i, 1)?,
+                    &[last],
+                    false,
+                    false,
+                    true,
+                )?;
                 Ok(tokens.get(0)?)
             })
             .collect::<Result<Vec<_>>>()?;
