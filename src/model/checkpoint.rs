@@ -33,6 +33,15 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
 
 /// Writes `config.json` and `model.safetensors` into `dir` (created if needed).
 pub fn save(dir: &Path, cfg: &FaceConfig, varmap: &VarMap) -> Result<()> {
+    save_checkpoint(dir, cfg, varmap)
+}
+
+/// [`save`] for any serializable config (the diffusion model's checkpoints share the format).
+pub(crate) fn save_checkpoint<C: serde::Serialize>(
+    dir: &Path,
+    cfg: &C,
+    varmap: &VarMap,
+) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     let cfg_path = dir.join(CONFIG_FILE);
     let json = serde_json::to_string_pretty(cfg).map_err(|e| ModelError::BadCheckpoint {
@@ -47,12 +56,17 @@ pub fn save(dir: &Path, cfg: &FaceConfig, varmap: &VarMap) -> Result<()> {
 
 /// Reads and validates `config.json`.
 pub fn load_config(dir: &Path) -> Result<FaceConfig> {
-    let path = dir.join(CONFIG_FILE);
-    let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
-    let cfg: FaceConfig = serde_json::from_str(&text)
-        .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })?;
+    let cfg: FaceConfig = read_config(dir)?;
     cfg.validate()?;
     Ok(cfg)
+}
+
+/// Parses `config.json` (without validating it).
+pub(crate) fn read_config<C: serde::de::DeserializeOwned>(dir: &Path) -> Result<C> {
+    let path = dir.join(CONFIG_FILE);
+    let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
+    serde_json::from_str(&text)
+        .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })
 }
 
 fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String, Tensor>)> {
@@ -155,6 +169,16 @@ impl SimpleBackend for CheckedBackend {
 /// right shape, and no other tensor may be.
 pub fn load(dir: &Path, device: &Device) -> Result<FaceModel> {
     let cfg = load_config(dir)?;
+    build_checked(dir, device, |vb| FaceModel::new(&cfg, vb))
+}
+
+/// Runs `build` on the weights in `dir` with the checks of [`load`]: the first missing or
+/// misshapen tensor is named, and so are tensors `build` did not use.
+pub(crate) fn build_checked<M>(
+    dir: &Path,
+    device: &Device,
+    build: impl FnOnce(VarBuilder) -> Result<M>,
+) -> Result<M> {
     let (path, tensors) = load_tensors(dir, device)?;
     let names: Vec<String> = tensors.keys().cloned().collect();
     let backend = std::sync::Arc::new(CheckedTensors {
@@ -167,7 +191,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<FaceModel> {
         DType::F32,
         device.clone(),
     );
-    let built = FaceModel::new(&cfg, vb);
+    let built = build(vb);
     let problem = backend.problem.lock().unwrap_or_else(|p| p.into_inner()).take();
     if let Some(problem) = problem {
         return Err(problem.into_error(&path));
@@ -186,6 +210,12 @@ pub fn load(dir: &Path, device: &Device) -> Result<FaceModel> {
 /// training), with the same checks as [`load`].
 pub fn load_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<FaceConfig> {
     let cfg = load_config(dir)?;
+    copy_into_varmap(dir, varmap, device)?;
+    Ok(cfg)
+}
+
+/// The weights part of [`load_into_varmap`], for any model.
+pub(crate) fn copy_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<()> {
     let (path, tensors) = load_tensors(dir, device)?;
     let data = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
     let mut names: Vec<&String> = data.keys().collect();
@@ -201,7 +231,7 @@ pub fn load_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<
         unused.sort();
         return Err(ModelError::UnexpectedTensors { path, names: unused });
     }
-    Ok(cfg)
+    Ok(())
 }
 
 #[cfg(test)]

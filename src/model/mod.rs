@@ -35,7 +35,7 @@
 //!   only when nothing tracks gradients, so build inference models from detached weights
 //!   ([`checkpoint::load`], [`checkpoint::inference_model`]); a `VarMap`-backed model trains.
 
-mod attention;
+pub(crate) mod attention;
 mod baseline;
 mod batch;
 mod cache;
