@@ -53,12 +53,6 @@ pub enum Conditioning {
 }
 
 impl Conditioning {
-    pub fn kind(&self) -> &'static str {
-        match self {
-            Self::Points(_) => "reconstruct",
-        }
-    }
-
     pub fn normalization(&self) -> Normalization {
         match self {
             Self::Points(p) => p.normalization,
