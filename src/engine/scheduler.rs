@@ -116,7 +116,12 @@ impl Scheduler {
 
     pub fn run(mut self) {
         while let Some(admitted) = self.next_admissions() {
+            let admitted_any = !admitted.is_empty();
             self.start(admitted);
+            if admitted_any {
+                // Seen before their first face, so a status never lags behind the stream.
+                self.publish_running();
+            }
             self.step();
         }
         for a in &mut self.running {
@@ -128,6 +133,11 @@ impl Scheduler {
         q.running = 0;
         q.stopped = true;
         self.shared.metrics.running_sequences.set(0);
+    }
+
+    fn publish_running(&self) {
+        self.shared.lock().running = self.running.len();
+        self.shared.metrics.running_sequences.set(self.running.len() as i64);
     }
 
     /// Requests to start now; waits while there is nothing to do; `None` when the engine has
