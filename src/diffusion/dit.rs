@@ -136,6 +136,35 @@ impl DitCondition {
     pub fn batch(&self) -> usize {
         self.batch
     }
+
+    /// The rows of `self` followed by the rows of `other` (conditions of the same DiT).
+    pub fn concat(&self, other: &Self) -> Result<Self> {
+        if self.kv.len() != other.kv.len() {
+            return Err(ModelError::bad_input("conditions of different DiTs"));
+        }
+        let kv = self
+            .kv
+            .iter()
+            .zip(&other.kv)
+            .map(|((k1, v1), (k2, v2))| Ok((Tensor::cat(&[k1, k2], 0)?, Tensor::cat(&[v1, v2], 0)?)))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { kv, batch: self.batch + other.batch })
+    }
+
+    /// The rows at `rows`, in that order.
+    pub fn select(&self, rows: &[u32]) -> Result<Self> {
+        let device = match self.kv.first() {
+            Some((k, _)) => k.device().clone(),
+            None => return Ok(Self { kv: Vec::new(), batch: rows.len() }),
+        };
+        let idx = Tensor::from_slice(rows, rows.len(), &device)?;
+        let kv = self
+            .kv
+            .iter()
+            .map(|(k, v)| Ok((k.index_select(&idx, 0)?, v.index_select(&idx, 0)?)))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { kv, batch: rows.len() })
+    }
 }
 
 #[derive(Debug, Clone)]

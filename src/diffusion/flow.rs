@@ -83,25 +83,26 @@ pub fn combine_guidance(v_cond: &Tensor, v_uncond: &Tensor, scales: &Tensor) -> 
     Ok((v_uncond + (v_cond - v_uncond)?.broadcast_mul(&s)?)?)
 }
 
-/// The guided velocity at x (B, ...) and time t. Skips the pass a uniform scale of 1 (only
-/// conditional) or 0 (only unconditional) does not need.
+/// The guided velocity at x (B, ...) and times t (one per row). Skips the pass a uniform
+/// scale of 1 (only conditional) or 0 (only unconditional) does not need.
 pub fn guided_velocity<M: VelocityField>(
     model: &M,
     x: &Tensor,
-    t: f64,
+    times: &[f32],
     guidance: &Guidance<'_, M::Condition>,
 ) -> Result<Tensor> {
     let b = x.dim(0)?;
-    if guidance.scales.len() != b {
+    if guidance.scales.len() != b || times.len() != b {
         return Err(ModelError::bad_input(format!(
-            "{} guidance scales for a batch of {b}",
-            guidance.scales.len()
+            "{} guidance scales and {} times for a batch of {b}",
+            guidance.scales.len(),
+            times.len()
         )));
     }
     if let Some(s) = guidance.scales.iter().find(|s| !s.is_finite()) {
         return Err(ModelError::bad_input(format!("guidance scale {s} is not finite")));
     }
-    let times = Tensor::full(t as f32, b, x.device())?;
+    let times = Tensor::from_slice(times, b, x.device())?;
     if guidance.scales.iter().all(|&s| s == 1.0) {
         return model.velocity(x, &times, guidance.cond);
     }
@@ -114,8 +115,43 @@ pub fn guided_velocity<M: VelocityField>(
     combine_guidance(&v_cond, &v_uncond, &scales)
 }
 
-/// Euler step `step` of `steps` (0-based): from t = step/steps to t + 1/steps. A scheduler can
-/// interleave these with other work and report "step k of N".
+/// Where a row is on its own schedule: about to take Euler step `step` (0-based) of `steps`.
+/// Rows of one batch may be at different steps of different schedules, which is what lets a
+/// scheduler add requests to a sampling batch at any time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RowStep {
+    pub step: usize,
+    pub steps: usize,
+}
+
+impl RowStep {
+    pub fn is_done(self) -> bool {
+        self.step >= self.steps
+    }
+}
+
+/// One Euler step for every row, each on its own schedule: from t = step/steps to
+/// t + 1/steps.
+pub fn euler_step_rows<M: VelocityField>(
+    model: &M,
+    x: &Tensor,
+    rows: &[RowStep],
+    guidance: &Guidance<'_, M::Condition>,
+) -> Result<Tensor> {
+    if let Some(r) = rows.iter().find(|r| r.is_done()) {
+        return Err(ModelError::bad_input(format!(
+            "Euler step {} of {} out of range",
+            r.step, r.steps
+        )));
+    }
+    let dts: Vec<f32> = rows.iter().map(|r| 1.0 / r.steps as f32).collect();
+    let times: Vec<f32> = rows.iter().zip(&dts).map(|(r, dt)| r.step as f32 * dt).collect();
+    let v = guided_velocity(model, x, &times, guidance)?;
+    let dt = per_row(&Tensor::from_vec(dts, rows.len(), x.device())?, x)?;
+    Ok((x + v.broadcast_mul(&dt)?)?.detach())
+}
+
+/// Euler step `step` of `steps` (0-based) for the whole batch.
 pub fn euler_step<M: VelocityField>(
     model: &M,
     x: &Tensor,
@@ -123,12 +159,7 @@ pub fn euler_step<M: VelocityField>(
     steps: usize,
     guidance: &Guidance<'_, M::Condition>,
 ) -> Result<Tensor> {
-    if step >= steps {
-        return Err(ModelError::bad_input(format!("Euler step {step} of {steps} out of range")));
-    }
-    let dt = 1.0 / steps as f64;
-    let v = guided_velocity(model, x, step as f64 * dt, guidance)?;
-    Ok((x + (v * dt)?)?.detach())
+    euler_step_rows(model, x, &vec![RowStep { step, steps }; x.dim(0)?], guidance)
 }
 
 /// Integrates from the noise `x0` (t = 0) to data (t = 1) in `steps` Euler steps.
@@ -208,7 +239,7 @@ mod tests {
         let v_u = GaussianField.velocity(&x, &t, &uncond).unwrap();
         for (scale, expect) in [(1.0, &v_c), (0.0, &v_u)] {
             let g = Guidance { cond: &cond, uncond: &uncond, scales: vec![scale; 4] };
-            let v = guided_velocity(&GaussianField, &x, 0.3, &g).unwrap();
+            let v = guided_velocity(&GaussianField, &x, &[0.3; 4], &g).unwrap();
             assert!(max_abs(&(v - expect).unwrap()) < 1e-6);
             // The combination formula itself (run when rows have different scales).
             let s = Tensor::full(scale, 4, &dev).unwrap();
@@ -217,7 +248,7 @@ mod tests {
         }
         // Mixed scales in one batch: each row gets its own.
         let g = Guidance { cond: &cond, uncond: &uncond, scales: vec![1.0, 0.0, 3.0, 1.0] };
-        let v = guided_velocity(&GaussianField, &x, 0.3, &g).unwrap().to_vec2::<f32>().unwrap();
+        let v = guided_velocity(&GaussianField, &x, &[0.3; 4], &g).unwrap().to_vec2::<f32>().unwrap();
         let (c, u) = (v_c.to_vec2::<f32>().unwrap(), v_u.to_vec2::<f32>().unwrap());
         for j in 0..2 {
             assert!((v[0][j] - c[0][j]).abs() < 1e-5);
@@ -225,7 +256,7 @@ mod tests {
             assert!((v[2][j] - (u[2][j] + 3.0 * (c[2][j] - u[2][j]))).abs() < 1e-4);
         }
         let bad = Guidance { cond: &cond, uncond: &uncond, scales: vec![1.0; 3] };
-        assert!(guided_velocity(&GaussianField, &x, 0.3, &bad).is_err());
+        assert!(guided_velocity(&GaussianField, &x, &[0.3; 4], &bad).is_err());
         assert!(euler_step(&GaussianField, &x, 5, 5, &bad).is_err());
         assert!(sample(&GaussianField, &x, 0, &Guidance::conditional(&cond, 4)).is_err());
     }

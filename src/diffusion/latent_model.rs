@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! let mut run = model.start(&images, scales, 100, &mut rng)?;   // encodes images once
-//! while !run.is_done() { model.step(&mut run)?; }              // "step k of N": run.progress()
+//! while !run.is_done() { model.step(&mut run)?; }              // "step k of N": run.rows()
 //! let latents = model.latents(&run)?;                           // (B, K, latent_dim), raw scale
 //! ```
 //! The latents go to the unchanged FACE decoder.
@@ -14,7 +14,7 @@ use rand::Rng;
 
 use super::config::{DitConfig, ImageEncoderConfig};
 use super::dit::{Dit, DitCondition};
-use super::flow::{self, Guidance};
+use super::flow::{self, Guidance, RowStep};
 use super::image_encoder::{Dinov2Encoder, ImageEncoder, PatchEncoder};
 use crate::model::{ModelError, Result};
 
@@ -134,19 +134,48 @@ impl DiffusionModel {
         let uncond = self.dit.null_condition(b)?;
         let shape = [b, self.cfg.num_latents, self.cfg.latent_dim];
         let x = flow::gaussian_noise(&shape, rng, images.device())?;
-        Ok(LatentSampling { cond, uncond, scales, x, step: 0, steps })
+        Ok(LatentSampling { cond, uncond, scales, x, rows: vec![RowStep { step: 0, steps }; b] })
     }
 
-    /// One Euler step of a sampling run (a no-op once it is done).
+    /// One Euler step for every unfinished row of a sampling run; finished rows stay as they
+    /// are.
     pub fn step(&self, run: &mut LatentSampling) -> Result<()> {
-        if run.is_done() {
-            return Ok(());
+        let active: Vec<u32> =
+            (0..run.len()).filter(|&i| !run.rows[i].is_done()).map(|i| i as u32).collect();
+        if active.len() == run.len() {
+            run.x = self.step_rows(&run.x, &run.cond, &run.uncond, &run.scales, &run.rows)?;
+        } else if !active.is_empty() {
+            let part = run.select(&active)?;
+            let stepped = self.step_rows(&part.x, &part.cond, &part.uncond, &part.scales, &part.rows)?;
+            // Reassemble in row order: stepped rows in turn, finished rows unchanged.
+            let mut next_stepped = 0;
+            let mut rows = Vec::with_capacity(run.len());
+            for (i, row) in run.rows.iter().enumerate() {
+                if row.is_done() {
+                    rows.push(run.x.narrow(0, i, 1)?);
+                } else {
+                    rows.push(stepped.narrow(0, next_stepped, 1)?);
+                    next_stepped += 1;
+                }
+            }
+            run.x = Tensor::cat(&rows, 0)?;
         }
-        let guidance =
-            Guidance { cond: &run.cond, uncond: &run.uncond, scales: run.scales.clone() };
-        run.x = flow::euler_step(&self.dit, &run.x, run.step, run.steps, &guidance)?;
-        run.step += 1;
+        for &i in &active {
+            run.rows[i as usize].step += 1;
+        }
         Ok(())
+    }
+
+    fn step_rows(
+        &self,
+        x: &Tensor,
+        cond: &DitCondition,
+        uncond: &DitCondition,
+        scales: &[f32],
+        rows: &[RowStep],
+    ) -> Result<Tensor> {
+        let guidance = Guidance { cond, uncond, scales: scales.to_vec() };
+        flow::euler_step_rows(&self.dit, x, rows, &guidance)
     }
 
     /// The run's current latents in the autoencoder's scale (B, K, latent_dim).
@@ -170,26 +199,74 @@ impl DiffusionModel {
     }
 }
 
-/// A batched sampling run in progress: conditions prepared once, the current x_t, and how far
-/// along it is.
+/// A batched sampling run in progress: conditions prepared once, the current x_t, and where
+/// each row is on its schedule. Runs can be joined and rows dropped between steps, so a
+/// scheduler can keep one batch while requests come and go.
 #[derive(Debug, Clone)]
 pub struct LatentSampling {
     cond: DitCondition,
     uncond: DitCondition,
     scales: Vec<f32>,
     x: Tensor,
-    step: usize,
-    steps: usize,
+    rows: Vec<RowStep>,
 }
 
 impl LatentSampling {
-    /// (steps done, total steps).
-    pub fn progress(&self) -> (usize, usize) {
-        (self.step, self.steps)
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// Each row's progress: steps done and total steps.
+    pub fn rows(&self) -> &[RowStep] {
+        &self.rows
     }
 
     pub fn is_done(&self) -> bool {
-        self.step >= self.steps
+        self.rows.iter().all(|r| r.is_done())
+    }
+
+    /// Adds the rows of `other` after this run's rows.
+    pub fn append(&mut self, other: LatentSampling) -> Result<()> {
+        self.cond = self.cond.concat(&other.cond)?;
+        self.uncond = self.uncond.concat(&other.uncond)?;
+        self.x = Tensor::cat(&[&self.x, &other.x], 0)?;
+        self.scales.extend(other.scales);
+        self.rows.extend(other.rows);
+        Ok(())
+    }
+
+    /// Keeps the rows where `keep` is true, in order. Keeping none is an error: drop the run.
+    pub fn retain(&mut self, keep: &[bool]) -> Result<()> {
+        if keep.len() != self.len() {
+            return Err(ModelError::bad_input(format!(
+                "{} flags for a run of {} rows",
+                keep.len(),
+                self.len()
+            )));
+        }
+        let rows: Vec<u32> = (0..self.len()).filter(|&i| keep[i]).map(|i| i as u32).collect();
+        if rows.is_empty() {
+            return Err(ModelError::bad_input("a sampling run cannot keep zero rows"));
+        }
+        if rows.len() < self.len() {
+            *self = self.select(&rows)?;
+        }
+        Ok(())
+    }
+
+    fn select(&self, rows: &[u32]) -> Result<Self> {
+        let idx = Tensor::from_slice(rows, rows.len(), self.x.device())?;
+        Ok(Self {
+            cond: self.cond.select(rows)?,
+            uncond: self.uncond.select(rows)?,
+            scales: rows.iter().map(|&i| self.scales[i as usize]).collect(),
+            x: self.x.index_select(&idx, 0)?,
+            rows: rows.iter().map(|&i| self.rows[i as usize]).collect(),
+        })
     }
 }
 
@@ -274,9 +351,9 @@ mod tests {
         let images = blank_images(&cfg, 3, &Device::Cpu).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let mut run = model.start(&images, vec![1.0, 3.0, 0.0], 4, &mut rng).unwrap();
-        assert_eq!(run.progress(), (0, 4));
+        assert_eq!(run.rows()[2], RowStep { step: 0, steps: 4 });
         model.step(&mut run).unwrap();
-        assert_eq!(run.progress(), (1, 4));
+        assert_eq!(run.rows()[2], RowStep { step: 1, steps: 4 });
         while !run.is_done() {
             model.step(&mut run).unwrap();
         }
@@ -287,5 +364,40 @@ mod tests {
         assert_eq!(crate::model::testing::max_abs_diff(&stepped, &all), 0.0);
         assert!(model.start(&images, vec![1.0], 4, &mut rng).is_err());
         assert!(model.start(&images, vec![1.0; 3], 0, &mut rng).is_err());
+    }
+
+    /// A scheduler joins runs started at different times, with different step counts, and
+    /// drops rows as they finish or are cancelled: each row must come out as if sampled alone.
+    #[test]
+    fn joined_runs_match_runs_alone() {
+        let cfg = DitConfig::micro();
+        let (_, model) = random_varmap(&cfg);
+        let image = |v: f32| Tensor::full(v, (1, 3, 16, 16), &Device::Cpu).unwrap();
+        let alone = |v: f32, scale: f32, steps: usize, seed: u64| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            model.generate(&image(v), vec![scale], steps, &mut rng).unwrap()
+        };
+        let start = |v: f32, scale: f32, steps: usize, seed: u64| {
+            model.start(&image(v), vec![scale], steps, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
+        };
+        let mut run = start(0.2, 1.0, 5, 1);
+        model.step(&mut run).unwrap();
+        model.step(&mut run).unwrap();
+        run.append(start(0.7, 3.0, 3, 2)).unwrap();
+        run.append(start(0.9, 0.0, 4, 3)).unwrap();
+        model.step(&mut run).unwrap();
+        // The third request is cancelled after one step.
+        run.retain(&[true, true, false]).unwrap();
+        while !run.rows()[0].is_done() || !run.rows()[1].is_done() {
+            model.step(&mut run).unwrap();
+        }
+        assert_eq!(run.rows(), &[RowStep { step: 5, steps: 5 }, RowStep { step: 3, steps: 3 }]);
+        let joined = model.latents(&run).unwrap();
+        for (row, expect) in [alone(0.2, 1.0, 5, 1), alone(0.7, 3.0, 3, 2)].iter().enumerate() {
+            let got = joined.narrow(0, row, 1).unwrap();
+            assert!(crate::model::testing::max_abs_diff(&got, expect) < 1e-4, "row {row}");
+        }
+        assert!(run.retain(&[false, false]).is_err());
+        assert!(run.retain(&[true]).is_err());
     }
 }

@@ -28,7 +28,7 @@ pub use config::{
     DINOV2_PATCH, Dinov2Config, DitConfig, ImageEncoderConfig, LatentStats, PatchEncoderConfig,
 };
 pub use dit::{Dit, DitCondition};
-pub use flow::{Guidance, VelocityField};
+pub use flow::{Guidance, RowStep, VelocityField};
 pub use image::{ImageInputError, ImageOptions, PreparedImage, decode_image, images_to_tensor};
 pub use image_encoder::{Dinov2Encoder, ImageEncoder, PatchEncoder};
 pub use latent_model::{DiffusionModel, LatentSampling, latent_stats};
