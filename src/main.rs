@@ -1,5 +1,5 @@
 //! The `meshstream` command: inspect, convert, sample and evaluate meshes, reconstruct them,
-//! and serve the model over HTTP and gRPC.
+//! generate them from images, and serve the models over HTTP and gRPC.
 
 mod commands;
 
@@ -27,6 +27,8 @@ enum Command {
     Sample(commands::sample::SampleArgs),
     /// Reconstruct a clean mesh from a point cloud or a dense mesh with a FACE model.
     Reconstruct(commands::reconstruct::ReconstructArgs),
+    /// Generate a mesh from an image: diffusion to the shape's latents, then the face decoder.
+    Generate(commands::generate::GenerateArgs),
     /// Serve HTTP and gRPC on one engine (continuous batching, faces streamed as decoded).
     Serve(commands::serve::ServeArgs),
     /// A training-free baseline (convex hull or Poisson) from the same input and face budget.
@@ -47,6 +49,7 @@ fn main() -> anyhow::Result<()> {
         Command::Sample(args) => commands::sample::run(&args),
         Command::Eval(args) => commands::eval::run(&args),
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
+        Command::Generate(args) => commands::generate::run(&args),
         Command::Serve(args) => commands::serve::run(&args),
         Command::Render(args) => commands::render::run(&args),
         Command::Baseline(args) => commands::baseline::run(&args),

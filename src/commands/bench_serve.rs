@@ -15,7 +15,7 @@ use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
     Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
 };
-use meshstream::server::{InputLimits, Listeners, ServeConfig, serve};
+use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 
 #[derive(Args)]
 pub struct ServeBenchArgs {
@@ -55,7 +55,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         decode_threads: args.decode_threads,
         ..EngineConfig::default()
     };
-    let engine = Engine::start(model, config, Arc::new(Metrics::default()))?;
+    let engine = Engine::start(model, None, config, Arc::new(Metrics::default()))?;
     let loopback = SocketAddr::from(([127, 0, 0, 1], 0));
     let serve_config = ServeConfig {
         http_addr: loopback,
@@ -64,6 +64,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         max_body_bytes: 64 << 20,
         request_timeout: Duration::from_secs(600),
         shutdown_grace: Duration::from_secs(5),
+        image: ImageServeConfig::default(),
         model_dir: args.model.clone(),
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;

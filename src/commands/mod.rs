@@ -5,7 +5,9 @@ pub mod bench;
 pub mod bench_decode;
 pub mod bench_serve;
 pub mod convert;
+pub mod decode;
 pub mod eval;
+pub mod generate;
 pub mod reconstruct;
 pub mod render;
 pub mod sample;
@@ -15,6 +17,8 @@ pub mod stats;
 use std::path::Path;
 
 use anyhow::Context;
+use candle_core::Device;
+use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
 use meshstream::mesh::{Mesh, Normalization, ReadLimits, encoder_points, read_mesh_file};
 
 /// Reads a mesh with the default limits, naming the file in the error.
@@ -33,6 +37,31 @@ pub fn input_points(path: &Path, n: usize, seed: u64) -> anyhow::Result<(Mesh, N
     let cloud = encoder_points(&normalization.apply_mesh(&input), n, seed)
         .context("preparing the input points")?;
     Ok((cloud, normalization))
+}
+
+/// Where a model folder keeps its image model (the diffusion transformer), if it has one.
+pub const IMAGE_MODEL_SUBDIR: &str = "dit";
+
+/// The image model to load: `explicit` if given (it must exist), else the `dit/` folder of
+/// the face model's folder when there is one.
+pub fn image_model_dir(model: &Path, explicit: Option<&Path>) -> Option<std::path::PathBuf> {
+    match explicit {
+        Some(dir) => Some(dir.to_path_buf()),
+        None => {
+            let dir = model.join(IMAGE_MODEL_SUBDIR);
+            dir.join("config.json").is_file().then_some(dir)
+        }
+    }
+}
+
+/// Loads an image model; `dinov2` is the frozen backbone's weights for a DINOv2 config.
+pub fn load_image_model(
+    dir: &Path,
+    dinov2: Option<&Path>,
+    device: &Device,
+) -> anyhow::Result<DiffusionModel> {
+    dit_checkpoint::load(dir, device, dinov2)
+        .with_context(|| format!("loading the image model in {}", dir.display()))
 }
 
 /// A table printed as Markdown, so figures paste straight into notes and model cards.

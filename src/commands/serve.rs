@@ -8,8 +8,10 @@ use clap::{Args, ValueEnum};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::ReadLimits;
 use meshstream::model::{checkpoint, parse_device};
-use meshstream::server::{InputLimits, Listeners, ServeConfig, serve};
+use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 use tracing_subscriber::EnvFilter;
+
+use super::{image_model_dir, load_image_model};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum LogFormat {
@@ -74,6 +76,25 @@ pub struct ServeArgs {
     /// Most triangles in an uploaded mesh.
     #[arg(long, env = "MESHSTREAM_MAX_MESH_FACES", default_value_t = 4_000_000)]
     max_mesh_faces: usize,
+    /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
+    /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
+    #[arg(long, env = "MESHSTREAM_IMAGE_MODEL")]
+    image_model: Option<PathBuf>,
+    /// DINOv2 weights (safetensors), for an image model configured with a DINOv2 encoder.
+    #[arg(long, env = "MESHSTREAM_IMAGE_ENCODER")]
+    image_encoder: Option<PathBuf>,
+    /// Euler steps of an image request that does not say.
+    #[arg(long, env = "MESHSTREAM_DIFFUSION_STEPS", default_value_t = ImageServeConfig::default().steps)]
+    diffusion_steps: usize,
+    /// Most Euler steps an image request may ask for.
+    #[arg(long, env = "MESHSTREAM_MAX_DIFFUSION_STEPS", default_value_t = EngineConfig::default().max_diffusion_steps)]
+    max_diffusion_steps: usize,
+    /// Guidance scale of an image request that does not say.
+    #[arg(long, env = "MESHSTREAM_GUIDANCE", default_value_t = ImageServeConfig::default().guidance)]
+    guidance: f32,
+    /// Largest width and height of an uploaded image, in pixels.
+    #[arg(long, env = "MESHSTREAM_MAX_IMAGE_SIDE", default_value_t = ImageServeConfig::default().max_side)]
+    max_image_side: u32,
 }
 
 fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
@@ -91,6 +112,13 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     let device = parse_device(&args.device)?;
     let model = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let image_model = match image_model_dir(&args.model, args.image_model.as_deref()) {
+        Some(dir) => Some(load_image_model(&dir, args.image_encoder.as_deref(), &device)?),
+        None => {
+            tracing::info!("no image model: image requests are off");
+            None
+        }
+    };
     let config = EngineConfig {
         max_running: args.max_running,
         max_queue: args.max_queue,
@@ -101,8 +129,9 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         aging: seconds("aging", args.aging)?,
         stream_buffer: args.stream_buffer,
         decode_threads: args.decode_threads,
+        max_diffusion_steps: args.max_diffusion_steps,
     };
-    let engine = Engine::start(model, config, Arc::new(Metrics::default()))?;
+    let engine = Engine::start(model, image_model, config, Arc::new(Metrics::default()))?;
     let serve_config = ServeConfig {
         http_addr: args.http_addr,
         grpc_addr: args.grpc_addr,
@@ -118,6 +147,11 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         request_timeout: seconds("request-timeout", args.request_timeout)?,
         shutdown_grace: seconds("shutdown-grace", args.shutdown_grace)?,
         model_dir: args.model.clone(),
+        image: ImageServeConfig {
+            steps: args.diffusion_steps,
+            guidance: args.guidance,
+            max_side: args.max_image_side,
+        },
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {

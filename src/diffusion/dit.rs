@@ -146,7 +146,9 @@ impl DitCondition {
             .kv
             .iter()
             .zip(&other.kv)
-            .map(|((k1, v1), (k2, v2))| Ok((Tensor::cat(&[k1, k2], 0)?, Tensor::cat(&[v1, v2], 0)?)))
+            .map(|((k1, v1), (k2, v2))| {
+                Ok((Tensor::cat(&[k1, k2], 0)?, Tensor::cat(&[v1, v2], 0)?))
+            })
             .collect::<Result<Vec<_>>>()?;
         Ok(Self { kv, batch: self.batch + other.batch })
     }

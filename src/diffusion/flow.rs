@@ -248,7 +248,8 @@ mod tests {
         }
         // Mixed scales in one batch: each row gets its own.
         let g = Guidance { cond: &cond, uncond: &uncond, scales: vec![1.0, 0.0, 3.0, 1.0] };
-        let v = guided_velocity(&GaussianField, &x, &[0.3; 4], &g).unwrap().to_vec2::<f32>().unwrap();
+        let v =
+            guided_velocity(&GaussianField, &x, &[0.3; 4], &g).unwrap().to_vec2::<f32>().unwrap();
         let (c, u) = (v_c.to_vec2::<f32>().unwrap(), v_u.to_vec2::<f32>().unwrap());
         for j in 0..2 {
             assert!((v[0][j] - c[0][j]).abs() < 1e-5);

@@ -146,7 +146,8 @@ impl DiffusionModel {
             run.x = self.step_rows(&run.x, &run.cond, &run.uncond, &run.scales, &run.rows)?;
         } else if !active.is_empty() {
             let part = run.select(&active)?;
-            let stepped = self.step_rows(&part.x, &part.cond, &part.uncond, &part.scales, &part.rows)?;
+            let stepped =
+                self.step_rows(&part.x, &part.cond, &part.uncond, &part.scales, &part.rows)?;
             // Reassemble in row order: stepped rows in turn, finished rows unchanged.
             let mut next_stepped = 0;
             let mut rows = Vec::with_capacity(run.len());
@@ -378,7 +379,9 @@ mod tests {
             model.generate(&image(v), vec![scale], steps, &mut rng).unwrap()
         };
         let start = |v: f32, scale: f32, steps: usize, seed: u64| {
-            model.start(&image(v), vec![scale], steps, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
+            model
+                .start(&image(v), vec![scale], steps, &mut ChaCha8Rng::seed_from_u64(seed))
+                .unwrap()
         };
         let mut run = start(0.2, 1.0, 5, 1);
         model.step(&mut run).unwrap();

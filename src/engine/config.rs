@@ -28,6 +28,9 @@ pub struct EngineConfig {
     pub stream_buffer: usize,
     /// Threads that step parts of the running batch in parallel (0: one per core).
     pub decode_threads: usize,
+    /// Euler steps an image request may ask for: each costs one or two forward passes of
+    /// the diffusion model over its batch.
+    pub max_diffusion_steps: usize,
 }
 
 impl Default for EngineConfig {
@@ -42,6 +45,7 @@ impl Default for EngineConfig {
             aging: Duration::from_secs(2),
             stream_buffer: 256,
             decode_threads: 0,
+            max_diffusion_steps: 250,
         }
     }
 }
@@ -54,6 +58,7 @@ impl EngineConfig {
             ("max_faces_per_request", self.max_faces_per_request),
             ("max_batch_faces", self.max_batch_faces),
             ("max_encodes_per_iteration", self.max_encodes_per_iteration),
+            ("max_diffusion_steps", self.max_diffusion_steps),
         ];
         if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
             return Err(EngineError::InvalidInput(format!("{name} must be at least 1")));

@@ -23,6 +23,9 @@ pub enum EngineError {
     Model(String),
     #[error("the engine stopped")]
     Stopped,
+    /// The request needs a model this engine was started without.
+    #[error("{0}")]
+    Unsupported(String),
 }
 
 impl EngineError {
@@ -37,6 +40,7 @@ impl EngineError {
             Self::DeadlineExceeded(_) => "deadline_exceeded",
             Self::Model(_) => "model_error",
             Self::Stopped => "engine_stopped",
+            Self::Unsupported(_) => "unsupported",
         }
     }
 }

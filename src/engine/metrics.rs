@@ -18,6 +18,8 @@ pub struct Metrics {
     pub time_between_faces: Histogram,
     pub request_duration: Histogram,
     pub batch_size: Histogram,
+    pub diffusion_steps: Counter,
+    pub diffusion_batch_size: Histogram,
     rejections: ByReason,
     failures: ByReason,
     finished: ByReason,
@@ -34,6 +36,8 @@ impl Default for Metrics {
             time_between_faces: Histogram::new(exponential_buckets(0.0002, 2.0, 14)),
             request_duration: Histogram::new(exponential_buckets(0.01, 2.0, 14)),
             batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            diffusion_steps: Counter::default(),
+            diffusion_batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
             rejections: ByReason::default(),
             failures: ByReason::default(),
             finished: ByReason::default(),
@@ -65,6 +69,16 @@ impl Default for Metrics {
             "batch_size",
             "Sequences stepped together in one decode iteration",
             m.batch_size.clone(),
+        );
+        registry.register(
+            "diffusion_steps",
+            "Euler steps taken by the diffusion batch (one per iteration with image requests)",
+            m.diffusion_steps.clone(),
+        );
+        registry.register(
+            "diffusion_batch_size",
+            "Image requests stepped together in one diffusion step",
+            m.diffusion_batch_size.clone(),
         );
         registry.register(
             "requests_rejected",

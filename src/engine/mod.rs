@@ -13,6 +13,7 @@
 
 mod admission;
 mod config;
+mod diffusion_stage;
 mod error;
 mod metrics;
 mod request;
@@ -26,16 +27,20 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc;
 
+use crate::diffusion::{DiffusionModel, DitConfig};
 use crate::model::{FaceConfig, FaceModel};
 use crate::tokenize::Quantizer;
 
 pub use config::EngineConfig;
 pub use error::EngineError;
 pub use metrics::Metrics;
-pub use request::{Conditioning, DecodeOptions, PreparedPoints, Request};
+pub use request::{Conditioning, DecodeOptions, ImagePrompt, PreparedPoints, Request};
 pub use stream::{Completed, Event, RequestStream, StreamedFace, Summary};
 
 use scheduler::{Pending, QueueState, Scheduler, Shared};
+
+/// Guidance scales above this only push the sampler off the data.
+pub const MAX_GUIDANCE: f32 = 20.0;
 
 /// What the engine is doing now.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -53,19 +58,32 @@ pub struct EngineStatus {
 pub struct Engine {
     shared: Arc<Shared>,
     model_config: Arc<FaceConfig>,
+    /// The image model's, when the engine has one.
+    diffusion_config: Option<Arc<DitConfig>>,
     quantizer: Quantizer,
     thread: Arc<Mutex<Option<JoinHandle<()>>>>,
 }
 
 impl Engine {
-    /// Starts the scheduler thread and its decode pool.
+    /// Starts the scheduler thread and its decode pool. With a diffusion model the engine
+    /// also takes image requests; its latents must be the face model's.
     pub fn start(
         model: FaceModel,
+        diffusion: Option<DiffusionModel>,
         config: EngineConfig,
         metrics: Arc<Metrics>,
     ) -> Result<Self, EngineError> {
         config.validate()?;
         let model_config = Arc::new(model.config().clone());
+        let diffusion_config = diffusion.as_ref().map(|d| Arc::new(d.config().clone()));
+        if let Some(d) = &diffusion_config
+            && (d.num_latents, d.latent_dim) != (model_config.num_latents, model_config.latent_dim)
+        {
+            return Err(EngineError::Model(format!(
+                "the image model makes {} x {} latents, the face model takes {} x {}",
+                d.num_latents, d.latent_dim, model_config.num_latents, model_config.latent_dim
+            )));
+        }
         let levels = u16::try_from(model_config.quant_levels)
             .map_err(|_| EngineError::Model("quantization levels out of range".into()))?;
         let quantizer = Quantizer::new(levels).map_err(|e| EngineError::Model(e.to_string()))?;
@@ -85,16 +103,27 @@ impl Engine {
             config,
             metrics,
         });
-        let scheduler = Scheduler::new(model, quantizer, Arc::clone(&shared), pool);
+        let scheduler = Scheduler::new(model, diffusion, quantizer, Arc::clone(&shared), pool);
         let thread = std::thread::Builder::new()
             .name("engine-scheduler".into())
             .spawn(move || scheduler.run())
             .map_err(|e| EngineError::Model(format!("cannot start the scheduler: {e}")))?;
-        Ok(Self { shared, model_config, quantizer, thread: Arc::new(Mutex::new(Some(thread))) })
+        Ok(Self {
+            shared,
+            model_config,
+            diffusion_config,
+            quantizer,
+            thread: Arc::new(Mutex::new(Some(thread))),
+        })
     }
 
     pub fn model_config(&self) -> &FaceConfig {
         &self.model_config
+    }
+
+    /// The image model's config; `None` when the engine takes no image requests.
+    pub fn diffusion_config(&self) -> Option<&DitConfig> {
+        self.diffusion_config.as_deref()
     }
 
     pub fn config(&self) -> &EngineConfig {
@@ -169,9 +198,39 @@ impl Engine {
                     )));
                 }
             }
+            Conditioning::Image(prompt) => self.check_image(prompt)?,
         }
         // A budget larger than the whole batch's could never be admitted.
         Ok(faces.min(self.shared.config.max_batch_faces))
+    }
+
+    fn check_image(&self, prompt: &ImagePrompt) -> Result<(), EngineError> {
+        let dit = self.diffusion_config.as_ref().ok_or_else(|| {
+            EngineError::Unsupported(
+                "this server has no image model: image requests are off".into(),
+            )
+        })?;
+        let size = dit.image_encoder.image_size();
+        if prompt.image.size() != size {
+            return Err(EngineError::InvalidInput(format!(
+                "the image must be prepared at {size} x {size} pixels, got {0} x {0}",
+                prompt.image.size()
+            )));
+        }
+        let max_steps = self.shared.config.max_diffusion_steps;
+        if prompt.steps == 0 || prompt.steps > max_steps {
+            return Err(EngineError::InvalidInput(format!(
+                "steps must be between 1 and {max_steps}, got {}",
+                prompt.steps
+            )));
+        }
+        if !(0.0..=MAX_GUIDANCE).contains(&prompt.guidance) {
+            return Err(EngineError::InvalidInput(format!(
+                "guidance must be between 0 and {MAX_GUIDANCE}, got {}",
+                prompt.guidance
+            )));
+        }
+        Ok(())
     }
 
     pub fn status(&self) -> EngineStatus {

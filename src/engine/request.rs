@@ -3,6 +3,7 @@
 
 use std::time::Instant;
 
+use crate::diffusion::PreparedImage;
 use crate::mesh::{Mesh, Normalization, encoder_points, farthest_point_sampling};
 use crate::model::{FaceConfig, SamplingParams};
 
@@ -45,17 +46,35 @@ impl PreparedPoints {
     }
 }
 
-/// What the decoder is conditioned on. Each kind has its own stage before decoding (for
-/// points, the encoder); image conditioning joins here as a kind with a diffusion stage.
+/// An image request's input and its sampler's settings.
+#[derive(Debug, Clone)]
+pub struct ImagePrompt {
+    /// Decoded, square, at the image model's input size.
+    pub image: PreparedImage,
+    /// Euler steps of the diffusion sampler.
+    pub steps: usize,
+    /// Classifier-free guidance: 0 ignores the image, 1 is plain conditional sampling, more
+    /// follows the image more closely.
+    pub guidance: f32,
+    /// Seed of the sampler's starting noise.
+    pub seed: u64,
+}
+
+/// What the decoder is conditioned on. Each kind has its own stage before decoding: the
+/// point encoder, or diffusion from the image.
 #[derive(Debug, Clone)]
 pub enum Conditioning {
     Points(PreparedPoints),
+    Image(ImagePrompt),
 }
 
 impl Conditioning {
+    /// From the model's frame to the caller's. A mesh generated from an image has no
+    /// caller's frame: it stays in the model's, centred in [-1, 1]^3.
     pub fn normalization(&self) -> Normalization {
         match self {
             Self::Points(p) => p.normalization,
+            Self::Image(_) => Normalization::identity(),
         }
     }
 }

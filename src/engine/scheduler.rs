@@ -10,11 +10,13 @@ use candle_core::Tensor;
 use rayon::prelude::*;
 use tokio::sync::mpsc;
 
+use crate::diffusion::DiffusionModel;
 use crate::mesh::Normalization;
 use crate::model::{FaceModel, FinishReason, GenerateOptions, Generation, step_generations};
 use crate::tokenize::{Quantizer, face_positions};
 
 use super::admission::{Candidate, Capacity, admit};
+use super::diffusion_stage::DiffusionStage;
 use super::metrics::Metrics;
 use super::request::{Conditioning, PreparedPoints, Request};
 use super::stream::{Event, StreamedFace, Summary};
@@ -102,16 +104,20 @@ pub(super) struct Scheduler {
     shared: Arc<Shared>,
     pool: rayon::ThreadPool,
     running: Vec<Active>,
+    /// Image requests before decoding; `None` when the engine has no image model.
+    diffusion: Option<DiffusionStage>,
 }
 
 impl Scheduler {
     pub fn new(
         model: FaceModel,
+        diffusion: Option<DiffusionModel>,
         quantizer: Quantizer,
         shared: Arc<Shared>,
         pool: rayon::ThreadPool,
     ) -> Self {
-        Self { model, quantizer, shared, pool, running: Vec::new() }
+        let diffusion = diffusion.map(DiffusionStage::new);
+        Self { model, quantizer, shared, pool, running: Vec::new(), diffusion }
     }
 
     pub fn run(mut self) {
@@ -122,22 +128,37 @@ impl Scheduler {
                 // Seen before their first face, so a status never lags behind the stream.
                 self.publish_running();
             }
+            self.diffuse();
             self.step();
         }
-        for a in &mut self.running {
-            a.finish(Event::Failed(EngineError::ShuttingDown));
-            self.shared.metrics.fail("shutting_down");
-        }
-        self.running.clear();
+        self.fail_everything();
         let mut q = self.shared.lock();
         q.running = 0;
         q.stopped = true;
         self.shared.metrics.running_sequences.set(0);
     }
 
+    /// Ends every started request (shutdown): decoding and diffusing alike.
+    fn fail_everything(&mut self) {
+        let metrics = &self.shared.metrics;
+        for a in &mut self.running {
+            a.finish(Event::Failed(EngineError::ShuttingDown));
+            metrics.fail("shutting_down");
+        }
+        self.running.clear();
+        if let Some(stage) = &mut self.diffusion {
+            stage.fail_all(EngineError::ShuttingDown, metrics);
+        }
+    }
+
+    /// Started requests: decoding, or in the diffusion stage before it.
+    fn started(&self) -> usize {
+        self.running.len() + self.diffusion.as_ref().map_or(0, DiffusionStage::len)
+    }
+
     fn publish_running(&self) {
-        self.shared.lock().running = self.running.len();
-        self.shared.metrics.running_sequences.set(self.running.len() as i64);
+        self.shared.lock().running = self.started();
+        self.shared.metrics.running_sequences.set(self.started() as i64);
     }
 
     /// Requests to start now; waits while there is nothing to do; `None` when the engine has
@@ -173,25 +194,22 @@ impl Scheduler {
                 }
             });
             if past_deadline {
-                for a in &mut self.running {
-                    a.finish(Event::Failed(EngineError::ShuttingDown));
-                    metrics.fail("shutting_down");
-                }
-                self.running.clear();
+                self.fail_everything();
             }
-            q.running = self.running.len();
-            metrics.running_sequences.set(self.running.len() as i64);
+            q.running = self.started();
+            metrics.running_sequences.set(self.started() as i64);
             metrics.queue_depth.set(q.waiting.len() as i64);
-            if self.running.is_empty() && q.waiting.is_empty() {
+            if self.started() == 0 && q.waiting.is_empty() {
                 if q.closing.is_some() {
                     return None;
                 }
                 q = shared.wake.wait(q).unwrap_or_else(|poisoned| poisoned.into_inner());
                 continue;
             }
-            let reserved: usize = self.running.iter().map(|a| a.faces_reserved).sum();
+            let reserved: usize = self.running.iter().map(|a| a.faces_reserved).sum::<usize>()
+                + self.diffusion.as_ref().map_or(0, DiffusionStage::faces_reserved);
             let free = Capacity {
-                slots: cfg.max_running.saturating_sub(self.running.len()),
+                slots: cfg.max_running.saturating_sub(self.started()),
                 faces: cfg.max_batch_faces.saturating_sub(reserved),
                 starts: cfg.max_encodes_per_iteration,
             };
@@ -210,48 +228,92 @@ impl Scheduler {
         }
     }
 
-    /// Encodes the admitted requests in one batch and adds them to the running sequences.
+    /// Point requests: encoded in one batch, then decoded. Image requests: join the
+    /// diffusion batch.
     fn start(&mut self, admitted: Vec<Pending>) {
-        if admitted.is_empty() {
+        let now = Instant::now();
+        let (points, images): (Vec<Pending>, Vec<Pending>) = admitted
+            .into_iter()
+            .partition(|p| matches!(p.request.conditioning, Conditioning::Points(_)));
+        for p in images {
+            let joined = match &mut self.diffusion {
+                Some(stage) => stage.join(p, now),
+                None => Err((p, EngineError::Unsupported("this engine has no image model".into()))),
+            };
+            if let Err((p, e)) = joined {
+                self.shared.metrics.fail(e.code());
+                let _ = p.tx.try_send(Event::Failed(e));
+            }
+        }
+        if points.is_empty() {
             return;
         }
-        let t0 = Instant::now();
-        let clouds: Vec<&PreparedPoints> = admitted
+        let clouds: Vec<&PreparedPoints> = points
             .iter()
-            .map(|p| match &p.request.conditioning {
-                Conditioning::Points(points) => points,
+            .filter_map(|p| match &p.request.conditioning {
+                Conditioning::Points(points) => Some(points),
+                Conditioning::Image(_) => None,
             })
             .collect();
         let latents = self.pool.install(|| encode_batch(&self.model, &clouds));
-        let prepare = t0.elapsed();
-        for (i, p) in admitted.into_iter().enumerate() {
-            let started = latents.as_ref().map_err(Clone::clone).and_then(|l| {
-                let options = GenerateOptions {
-                    sampling: p.request.options.sampling.clone(),
-                    max_faces: p.faces,
-                    ..GenerateOptions::default()
-                };
-                Ok(Generation::new(&self.model, &l.get(i)?, options)?)
-            });
-            match started {
-                Ok(generation) => self.running.push(Active {
-                    generation,
-                    normalization: p.request.conditioning.normalization(),
-                    faces_reserved: p.faces,
-                    queued: t0 - p.submitted,
-                    prepare,
-                    decode_start: Instant::now(),
-                    first_face: None,
-                    last_face: Instant::now(),
-                    deadline: p.request.deadline,
-                    submitted: p.submitted,
-                    tx: p.tx,
-                    done: false,
-                }),
-                Err(e) => {
-                    self.shared.metrics.fail(e.code());
-                    let _ = p.tx.try_send(Event::Failed(e));
-                }
+        let prepare = now.elapsed();
+        for (i, p) in points.into_iter().enumerate() {
+            let latents = latents.as_ref().map_err(Clone::clone).and_then(|l| Ok(l.get(i)?));
+            let queued = now - p.submitted;
+            self.begin_decoding(p, latents, queued, prepare);
+        }
+    }
+
+    /// One diffusion step for the image requests; those whose latents are ready start
+    /// decoding.
+    fn diffuse(&mut self) {
+        let Some(stage) = &mut self.diffusion else {
+            return;
+        };
+        if stage.len() == 0 {
+            return;
+        }
+        let metrics = Arc::clone(&self.shared.metrics);
+        let ready = self.pool.install(|| stage.step(&metrics));
+        for s in ready {
+            self.begin_decoding(s.pending, Ok(s.latents), s.queued, s.prepare);
+        }
+    }
+
+    /// Adds a request whose latents (K, latent_dim) are ready to the running sequences.
+    fn begin_decoding(
+        &mut self,
+        p: Pending,
+        latents: Result<Tensor, EngineError>,
+        queued: Duration,
+        prepare: Duration,
+    ) {
+        let started = latents.and_then(|l| {
+            let options = GenerateOptions {
+                sampling: p.request.options.sampling.clone(),
+                max_faces: p.faces,
+                ..GenerateOptions::default()
+            };
+            Ok(Generation::new(&self.model, &l, options)?)
+        });
+        match started {
+            Ok(generation) => self.running.push(Active {
+                generation,
+                normalization: p.request.conditioning.normalization(),
+                faces_reserved: p.faces,
+                queued,
+                prepare,
+                decode_start: Instant::now(),
+                first_face: None,
+                last_face: Instant::now(),
+                deadline: p.request.deadline,
+                submitted: p.submitted,
+                tx: p.tx,
+                done: false,
+            }),
+            Err(e) => {
+                self.shared.metrics.fail(e.code());
+                let _ = p.tx.try_send(Event::Failed(e));
             }
         }
     }

@@ -23,7 +23,8 @@ pub struct StreamedFace {
 pub struct Summary {
     pub faces: usize,
     pub finish: FinishReason,
-    /// Waiting in the queue, the stage before decoding (the encoder), and decoding.
+    /// Waiting in the queue, the stage before decoding (the point encoder, or diffusion from
+    /// the image), and decoding.
     pub queued: Duration,
     pub prepare: Duration,
     pub decode: Duration,
@@ -33,6 +34,12 @@ pub struct Summary {
 
 #[derive(Debug, Clone, PartialEq)]
 pub enum Event {
+    /// An image request's diffusion stage: `step` of `steps` Euler steps done. Sent when the
+    /// client has room for it; a slow client may miss some, never the faces.
+    Progress {
+        step: usize,
+        steps: usize,
+    },
     Face(StreamedFace),
     /// The last event of a request that completed.
     Finished(Summary),
@@ -92,6 +99,7 @@ impl RequestStream {
         let mut tokens = Vec::new();
         while let Some(event) = self.next().await {
             match event {
+                Event::Progress { .. } => {}
                 Event::Face(face) => tokens.push(face.token),
                 Event::Finished(summary) => {
                     let mesh = self.assemble(&tokens);

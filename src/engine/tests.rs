@@ -10,7 +10,7 @@ fn engine(config: EngineConfig) -> (Engine, FaceModel) {
     // The engine's quantizer needs a real level count; the network stays tiny.
     let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
     let (_, model) = random_model(&cfg);
-    let engine = Engine::start(model.clone(), config, Arc::new(Metrics::default())).unwrap();
+    let engine = Engine::start(model.clone(), None, config, Arc::new(Metrics::default())).unwrap();
     (engine, model)
 }
 

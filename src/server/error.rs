@@ -68,6 +68,7 @@ impl From<EngineError> for ApiError {
             }
             EngineError::DeadlineExceeded(_) => StatusCode::GATEWAY_TIMEOUT,
             EngineError::Model(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            EngineError::Unsupported(_) => StatusCode::NOT_IMPLEMENTED,
         };
         let retry_after = matches!(status, StatusCode::TOO_MANY_REQUESTS)
             .then_some(Duration::from_secs(1))

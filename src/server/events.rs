@@ -7,6 +7,13 @@ use crate::engine::{StreamedFace, Summary};
 
 use super::error::ErrorBody;
 
+/// The diffusion stage of an image request: `step` of `steps` Euler steps done.
+#[derive(Serialize, ToSchema)]
+pub struct ProgressEvent {
+    pub step: usize,
+    pub steps: usize,
+}
+
 #[derive(Serialize, ToSchema)]
 pub struct FaceEvent {
     pub index: usize,
@@ -21,6 +28,7 @@ pub struct DoneEvent {
     /// end_of_mesh, max_faces, dead_end or cancelled.
     pub finish_reason: &'static str,
     pub queued_ms: f64,
+    /// The stage before decoding: the point encoder, or diffusion from the image.
     pub encode_ms: f64,
     pub decode_ms: f64,
     pub time_to_first_face_ms: Option<f64>,
@@ -31,6 +39,7 @@ pub struct DoneEvent {
 #[derive(Serialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Line {
+    Progress(ProgressEvent),
     Face(FaceEvent),
     Done(DoneEvent),
     Error(ErrorBody),

@@ -1,5 +1,6 @@
-//! The gRPC interface (tonic): `meshstream.v1.MeshGenerator/Reconstruct`, plus the standard
-//! health service and server reflection (so `grpcurl` works without the proto file).
+//! The gRPC interface (tonic): `meshstream.v1.MeshGenerator/Reconstruct` and
+//! `GenerateFromImage`, plus the standard health service and server reflection (so `grpcurl`
+//! works without the proto file).
 
 use std::collections::VecDeque;
 use std::pin::Pin;
@@ -8,17 +9,18 @@ use std::time::{Duration, Instant};
 use futures_util::{Stream, stream};
 use tonic::{Request, Response, Status};
 
-use crate::engine::{Engine, Event, RequestStream, Summary};
+use crate::engine::{Conditioning, DecodeOptions, Engine, Event, RequestStream, Summary};
 use crate::mesh::Format;
 
 use super::error::ApiError;
+use super::image_input::{GenerateOptions, ImageDefaults, ImageUpload};
 use super::input::{InputLimits, ReconstructOptions, parse_file, point_cloud};
-use super::prepare;
 use super::proto::mesh_generator_server::MeshGenerator;
 use super::proto::{
-    Face, FaceChunk, ReconstructRequest, ReconstructResponse, Stats, reconstruct_request,
-    reconstruct_response,
+    Face, FaceChunk, GenerateRequest, Progress, ReconstructRequest, ReconstructResponse, Stats,
+    reconstruct_request, reconstruct_response,
 };
+use super::{no_image_model, prepare};
 
 /// Faces sent in one message at most, when several are waiting.
 const MAX_FACES_PER_MESSAGE: usize = 64;
@@ -26,6 +28,8 @@ const MAX_FACES_PER_MESSAGE: usize = 64;
 pub struct GrpcService {
     pub engine: Engine,
     pub limits: InputLimits,
+    /// `None` when the engine has no image model.
+    pub image: Option<ImageDefaults>,
     pub request_timeout: Duration,
 }
 
@@ -34,6 +38,7 @@ impl From<ApiError> for Status {
         let message = format!("{}: {}", e.code, e.message);
         match e.status.as_u16() {
             429 => Status::resource_exhausted(message),
+            501 => Status::unimplemented(message),
             503 => Status::unavailable(message),
             504 => Status::deadline_exceeded(message),
             400..=499 => Status::invalid_argument(message),
@@ -47,22 +52,48 @@ type ResponseStream = Pin<Box<dyn Stream<Item = Result<ReconstructResponse, Stat
 #[tonic::async_trait]
 impl MeshGenerator for GrpcService {
     type ReconstructStream = ResponseStream;
+    type GenerateFromImageStream = ResponseStream;
 
     async fn reconstruct(
         &self,
         request: Request<ReconstructRequest>,
     ) -> Result<Response<ResponseStream>, Status> {
-        let id = request
-            .metadata()
-            .get("x-request-id")
-            .and_then(|v| v.to_str().ok())
-            .filter(|v| !v.is_empty() && v.len() <= 128)
-            .map_or_else(|| uuid::Uuid::new_v4().to_string(), str::to_string);
-        let metrics = self.engine.metrics().clone();
-        let stream = self.start(&id, request.into_inner()).await.inspect_err(|e| {
+        let id = request_id(&request);
+        let started = self.start(&id, request.into_inner()).await;
+        self.answer(id, started)
+    }
+
+    async fn generate_from_image(
+        &self,
+        request: Request<GenerateRequest>,
+    ) -> Result<Response<ResponseStream>, Status> {
+        let id = request_id(&request);
+        let started = self.start_image(&id, request.into_inner()).await;
+        self.answer(id, started)
+    }
+}
+
+/// The caller's `x-request-id`, if it is usable, or a new one.
+fn request_id<T>(request: &Request<T>) -> String {
+    request
+        .metadata()
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .filter(|v| !v.is_empty() && v.len() <= 128)
+        .map_or_else(|| uuid::Uuid::new_v4().to_string(), str::to_string)
+}
+
+impl GrpcService {
+    /// The response stream of a started request, or its refusal as a status.
+    fn answer(
+        &self,
+        id: String,
+        started: Result<RequestStream, ApiError>,
+    ) -> Result<Response<ResponseStream>, Status> {
+        let stream = started.inspect_err(|e| {
             // The engine counts its own refusals; these are the ones before it.
-            if e.status.as_u16() != 429 && e.status.as_u16() != 503 {
-                metrics.reject(e.code);
+            if !matches!(e.status.as_u16(), 429 | 503) {
+                self.engine.metrics().reject(e.code);
             }
             tracing::info!(request_id = %id, code = e.code, "refused: {}", e.message);
         })?;
@@ -72,9 +103,48 @@ impl MeshGenerator for GrpcService {
         }
         Ok(response)
     }
-}
 
-impl GrpcService {
+    async fn start_image(
+        &self,
+        id: &str,
+        request: GenerateRequest,
+    ) -> Result<RequestStream, ApiError> {
+        let defaults = self.image.clone().ok_or_else(no_image_model)?;
+        let o = request.options.unwrap_or_default();
+        let upload = ImageUpload {
+            image: request.image.into(),
+            options: GenerateOptions {
+                max_faces: o.max_faces.map(|n| n as usize),
+                steps: o.steps.map(|n| n as usize),
+                guidance: o.guidance,
+                seed: o.seed,
+                temperature: o.temperature,
+                top_k: o.top_k.map(|k| k as usize),
+                top_p: o.top_p,
+                format: None,
+            },
+        };
+        let parsed = tokio::task::spawn_blocking(move || upload.parse(&defaults))
+            .await
+            .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))??;
+        self.submit(id, Conditioning::Image(parsed.prompt), parsed.decode)
+    }
+
+    fn submit(
+        &self,
+        id: &str,
+        conditioning: Conditioning,
+        options: DecodeOptions,
+    ) -> Result<RequestStream, ApiError> {
+        let request = crate::engine::Request {
+            id: id.to_string(),
+            conditioning,
+            options,
+            deadline: Some(Instant::now() + self.request_timeout),
+        };
+        Ok(self.engine.submit(request)?)
+    }
+
     async fn start(
         &self,
         id: &str,
@@ -112,13 +182,7 @@ impl GrpcService {
         })
         .await
         .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))??;
-        let request = crate::engine::Request {
-            id: id.to_string(),
-            conditioning: prepared,
-            options: parsed.decode,
-            deadline: Some(Instant::now() + self.request_timeout),
-        };
-        Ok(self.engine.submit(request)?)
+        self.submit(id, prepared, parsed.decode)
     }
 }
 
@@ -141,9 +205,14 @@ fn responses(
                     return None;
                 }
                 let mut faces = Vec::new();
+                let mut progress = None;
                 let mut last = None;
                 for event in events {
                     match event {
+                        // Only the latest matters to a client that is behind.
+                        Event::Progress { step, steps } => {
+                            progress = Some(Progress { step: step as u32, steps: steps as u32 });
+                        }
                         Event::Face(f) => faces.push(Face {
                             index: f.index as u32,
                             vertices: f.vertices.iter().flatten().copied().collect(),
@@ -151,6 +220,10 @@ fn responses(
                         Event::Finished(summary) => last = Some(Ok(done(&id, &summary))),
                         Event::Failed(e) => last = Some(Err(Status::from(ApiError::from(e)))),
                     }
+                }
+                if let Some(p) = progress {
+                    let event = reconstruct_response::Event::Progress(p);
+                    ready.push_back(Ok(ReconstructResponse { event: Some(event) }));
                 }
                 if !faces.is_empty() {
                     let event = reconstruct_response::Event::Faces(FaceChunk { faces });

@@ -1,5 +1,6 @@
-//! The HTTP interface (axum): `POST /reconstruct` (a mesh, or faces streamed as SSE or
-//! NDJSON), health, readiness, metrics, model information and the OpenAPI document.
+//! The HTTP interface (axum): `POST /reconstruct` and `POST /generate` (a mesh, or events
+//! streamed as SSE or NDJSON), health, readiness, metrics, model information and the OpenAPI
+//! document.
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -17,13 +18,14 @@ use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetReques
 use tower_http::trace::TraceLayer;
 use utoipa::OpenApi;
 
-use crate::engine::{Engine, Event, Request, RequestStream};
+use crate::engine::{Conditioning, DecodeOptions, Engine, Event, Request, RequestStream};
 use crate::mesh::{Format, write_mesh};
 
 use super::error::{ApiError, ErrorBody};
-use super::events::{DoneEvent, FaceEvent, Line};
+use super::events::{DoneEvent, FaceEvent, Line, ProgressEvent};
+use super::image_input::{GenerateOptions, ImageDefaults, read_upload};
 use super::input::{InputLimits, ParsedRequest, PointsBody, ReconstructOptions, parse_body};
-use super::prepare;
+use super::{no_image_model, prepare};
 
 #[derive(Clone)]
 pub struct AppState {
@@ -31,6 +33,8 @@ pub struct AppState {
     pub limits: InputLimits,
     pub max_body_bytes: usize,
     pub request_timeout: Duration,
+    /// How images are prepared and sampled; `None` when the engine has no image model.
+    pub image: Option<ImageDefaults>,
     /// The `/v1/info` document, made once at start.
     pub info: Arc<serde_json::Value>,
 }
@@ -42,14 +46,15 @@ pub struct AppState {
         description = "Point clouds and meshes to artist-style meshes \
         with the FACE method, streamed face by face."
     ),
-    paths(reconstruct, healthz, readyz, metrics, info),
-    components(schemas(PointsBody, ErrorBody, FaceEvent, DoneEvent))
+    paths(reconstruct, generate, healthz, readyz, metrics, info),
+    components(schemas(PointsBody, ErrorBody, ProgressEvent, FaceEvent, DoneEvent))
 )]
 struct ApiDoc;
 
 pub fn router(state: AppState) -> Router {
     Router::new()
         .route("/reconstruct", post(reconstruct))
+        .route("/generate", post(generate))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
@@ -110,52 +115,123 @@ async fn reconstruct(
     headers: HeaderMap,
     body: Body,
 ) -> Response {
+    let prepared = async {
+        let query = query_options::<ReconstructOptions>(&uri)?;
+        let bytes = read_body(body, state.max_body_bytes).await?;
+        let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
+        off_runtime(move || {
+            let parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
+            let conditioning = prepare(&engine, &parsed.input, parsed.seed)?;
+            Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
+        })
+        .await
+    };
+    run(&state, headers.clone(), prepared.await).await
+}
+
+/// Generates a mesh from an image.
+///
+/// The body is the image (PNG, JPEG or WebP; options as query parameters), or a
+/// `multipart/form-data` form with an `image` part and the options as fields. The answer is
+/// as for `/reconstruct`: the mesh (in the model's frame, centred in [-1, 1]), or with
+/// `Accept: text/event-stream` / `application/x-ndjson` a stream of `progress` events (step k
+/// of N of the diffusion stage), then `face` events, then `done`.
+#[utoipa::path(
+    post,
+    path = "/generate",
+    params(GenerateOptions),
+    request_body(
+        content(
+            (Vec<u8> = "image/png"),
+            (Vec<u8> = "image/jpeg"),
+            (Vec<u8> = "image/webp"),
+            (Vec<u8> = "multipart/form-data"),
+        ),
+        description = "An image, raw or as the `image` part of a form"
+    ),
+    responses(
+        (status = 200, description = "The mesh, or the event stream", content(
+            (Vec<u8> = "model/gltf-binary"),
+            (String = "text/event-stream"),
+            (String = "application/x-ndjson"),
+        )),
+        (status = 400, description = "Not a usable image, or a malformed form", body = ErrorBody),
+        (status = 413, description = "Body over the size limit", body = ErrorBody),
+        (status = 422, description = "Invalid options", body = ErrorBody),
+        (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
+        (status = 501, description = "This server has no image model", body = ErrorBody),
+        (status = 503, description = "Shutting down, or waited too long in the queue", body = ErrorBody),
+    )
+)]
+async fn generate(
+    State(state): State<AppState>,
+    uri: Uri,
+    headers: HeaderMap,
+    body: Body,
+) -> Response {
+    let prepared = async {
+        let defaults = state.image.clone().ok_or_else(no_image_model)?;
+        let query = query_options::<GenerateOptions>(&uri)?;
+        let bytes = read_body(body, state.max_body_bytes).await?;
+        let upload = read_upload(&headers, query, bytes).await?;
+        off_runtime(move || {
+            let parsed = upload.parse(&defaults)?;
+            let conditioning = Conditioning::Image(parsed.prompt);
+            Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
+        })
+        .await
+    };
+    run(&state, headers.clone(), prepared.await).await
+}
+
+/// A request ready for the engine.
+struct Prepared {
+    conditioning: Conditioning,
+    decode: DecodeOptions,
+    format: Format,
+}
+
+fn query_options<T: serde::de::DeserializeOwned>(uri: &Uri) -> Result<T, ApiError> {
+    Query::<T>::try_from_uri(uri)
+        .map(|q| q.0)
+        .map_err(|e| ApiError::invalid(format!("query parameters: {}", e.body_text())))
+}
+
+/// Runs CPU work (parsing, sampling points, decoding images) on the blocking pool.
+async fn off_runtime(
+    work: impl FnOnce() -> Result<Prepared, ApiError> + Send + 'static,
+) -> Result<Prepared, ApiError> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))?
+}
+
+/// Queues a prepared request and answers with its mesh or its stream.
+async fn run(
+    state: &AppState,
+    headers: HeaderMap,
+    prepared: Result<Prepared, ApiError>,
+) -> Response {
     let id =
         headers.get("x-request-id").and_then(|v| v.to_str().ok()).unwrap_or_default().to_string();
-    match start(&state, &id, &uri, &headers, body).await {
+    // The engine counts its own refusals; these are the ones before it.
+    let prepared = prepared.inspect_err(|e| state.engine.metrics().reject(e.code));
+    let submitted = prepared.and_then(|p| {
+        let request = Request {
+            id: id.clone(),
+            conditioning: p.conditioning,
+            options: p.decode,
+            deadline: Some(Instant::now() + state.request_timeout),
+        };
+        Ok((state.engine.submit(request)?, p.format))
+    });
+    match submitted {
         Ok((stream, format)) => respond(stream, format, &headers, id).await,
         Err(e) => {
             tracing::info!(code = e.code, status = e.status.as_u16(), "refused: {}", e.message);
             e.into_response()
         }
     }
-}
-
-/// Reads and checks the request and queues it.
-async fn start(
-    state: &AppState,
-    id: &str,
-    uri: &Uri,
-    headers: &HeaderMap,
-    body: Body,
-) -> Result<(RequestStream, Format), ApiError> {
-    let metrics = state.engine.metrics();
-    let record = |e: ApiError| {
-        metrics.reject(e.code);
-        e
-    };
-    let query = Query::<ReconstructOptions>::try_from_uri(uri)
-        .map_err(|e| record(ApiError::invalid(format!("query parameters: {}", e.body_text()))))?
-        .0;
-    let bytes = read_body(body, state.max_body_bytes).await.map_err(record)?;
-    let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
-    let (parsed, prepared) = tokio::task::spawn_blocking(move || {
-        let parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
-        let prepared = prepare(&engine, &parsed.input, parsed.seed)?;
-        Ok::<_, ApiError>((parsed, prepared))
-    })
-    .await
-    .map_err(|e| ApiError::internal(format!("request preparation stopped: {e}")))?
-    .map_err(record)?;
-    let request = Request {
-        id: id.to_string(),
-        conditioning: prepared,
-        options: parsed.decode,
-        deadline: Some(Instant::now() + state.request_timeout),
-    };
-    // The engine counts its own refusals.
-    let stream = state.engine.submit(request)?;
-    Ok((stream, parsed.format))
 }
 
 async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
@@ -201,11 +277,13 @@ async fn respond(
         Some(Streaming::Sse) => {
             let events = lines(stream, id).map(|line| {
                 let event = match &line {
+                    Line::Progress(_) => "progress",
                     Line::Face(_) => "face",
                     Line::Done(_) => "done",
                     Line::Error(_) => "error",
                 };
                 let data = match line {
+                    Line::Progress(p) => serde_json::to_string(&p),
                     Line::Face(f) => serde_json::to_string(&f),
                     Line::Done(d) => serde_json::to_string(&d),
                     Line::Error(e) => serde_json::to_string(&e),
@@ -235,6 +313,9 @@ fn lines(stream: RequestStream, id: String) -> impl Stream<Item = Line> {
         async move {
             let mut s = state?;
             let line = match s.next().await? {
+                Event::Progress { step, steps } => {
+                    return Some((Line::Progress(ProgressEvent { step, steps }), Some(s)));
+                }
                 Event::Face(f) => return Some((Line::Face(FaceEvent::from(&f)), Some(s))),
                 Event::Finished(summary) => {
                     tracing::info!(request_id = %id, faces = summary.faces, "streamed");

@@ -61,27 +61,41 @@ pub struct InputLimits {
 
 impl ReconstructOptions {
     pub fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
-        let format = match self.format.as_deref() {
-            None => Format::Gltf,
-            Some(name) => name.parse::<Format>().map_err(|_| {
-                ApiError::invalid(format!("format {name:?}: use glb, obj, ply or stl"))
-            })?,
-        };
+        let format = output_format(self.format.as_deref())?;
         let seed = self.seed.unwrap_or(0);
-        let sampling = SamplingParams {
-            temperature: self.temperature.unwrap_or(0.0),
-            top_k: self.top_k,
-            top_p: self.top_p,
-            seed,
-        };
-        sampling.validate().map_err(|e| ApiError::invalid(e.to_string()))?;
-        Ok(ParsedRequest {
-            input,
-            decode: DecodeOptions { max_faces: self.max_faces, sampling },
-            seed,
-            format,
-        })
+        let decode =
+            decode_options(self.max_faces, self.temperature, self.top_k, self.top_p, seed)?;
+        Ok(ParsedRequest { input, decode, seed, format })
     }
+}
+
+/// The mesh format asked for: GLB when none is.
+pub fn output_format(name: Option<&str>) -> Result<Format, ApiError> {
+    match name {
+        None => Ok(Format::Gltf),
+        Some(name) => name
+            .parse::<Format>()
+            .map_err(|_| ApiError::invalid(format!("format {name:?}: use glb, obj, ply or stl"))),
+    }
+}
+
+/// Decoding options from a request's fields; greedy unless a temperature is given.
+pub fn decode_options(
+    max_faces: Option<usize>,
+    temperature: Option<f32>,
+    top_k: Option<usize>,
+    top_p: Option<f32>,
+    seed: u64,
+) -> Result<DecodeOptions, ApiError> {
+    let sampling = SamplingParams { temperature: temperature.unwrap_or(0.0), top_k, top_p, seed };
+    sampling.validate().map_err(|e| ApiError::invalid(e.to_string()))?;
+    Ok(DecodeOptions { max_faces, sampling })
+}
+
+/// The request's media type, lower case, without parameters ("" when absent).
+pub(super) fn media_type(headers: &HeaderMap) -> String {
+    let content_type = headers.get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    content_type.split(';').next().unwrap_or_default().trim().to_ascii_lowercase()
 }
 
 /// Parses a body by its Content-Type: JSON points, or a mesh file (by type, or sniffed when
@@ -93,7 +107,7 @@ pub fn parse_body(
     limits: &InputLimits,
 ) -> Result<ParsedRequest, ApiError> {
     let content_type = headers.get(CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
-    let essence = content_type.split(';').next().unwrap_or_default().trim().to_ascii_lowercase();
+    let essence = media_type(headers);
     if essence == "application/json" {
         return parse_json(body, limits);
     }
@@ -128,7 +142,7 @@ pub fn parse_file(
     Ok(mesh)
 }
 
-fn unsupported(message: impl Into<String>) -> ApiError {
+pub(super) fn unsupported(message: impl Into<String>) -> ApiError {
     ApiError::new(axum::http::StatusCode::BAD_REQUEST, "unsupported_format", message)
 }
 

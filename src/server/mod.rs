@@ -4,6 +4,7 @@ mod error;
 mod events;
 mod grpc;
 mod http;
+mod image_input;
 mod input;
 
 /// The gRPC API's messages, client and server (`proto/meshstream/v1/meshstream.proto`).
@@ -27,11 +28,14 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use crate::engine::{Conditioning, Engine, PreparedPoints};
+use crate::diffusion::ImageOptions;
+use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints};
 use crate::mesh::Mesh;
 
 pub use error::ApiError;
+use image_input::ImageDefaults;
 pub use input::InputLimits;
+
 use proto::mesh_generator_server::MeshGeneratorServer;
 
 #[derive(Debug, Error)]
@@ -54,6 +58,46 @@ pub struct ServeConfig {
     pub shutdown_grace: Duration,
     /// Shown by `/v1/info`.
     pub model_dir: PathBuf,
+    pub image: ImageServeConfig,
+}
+
+/// Image requests' defaults and limits (used when the engine has an image model).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageServeConfig {
+    /// Euler steps when a request does not say.
+    pub steps: usize,
+    /// Guidance scale when a request does not say.
+    pub guidance: f32,
+    /// Largest width and height of an uploaded image, in pixels.
+    pub max_side: u32,
+}
+
+impl Default for ImageServeConfig {
+    fn default() -> Self {
+        Self { steps: 50, guidance: 2.0, max_side: 4096 }
+    }
+}
+
+impl ImageServeConfig {
+    /// The defaults for the engine's image model, if it has one.
+    fn defaults(&self, engine: &Engine) -> Option<ImageDefaults> {
+        let size = engine.diffusion_config()?.image_encoder.image_size();
+        let decode = ImageOptions {
+            max_width: self.max_side,
+            max_height: self.max_side,
+            ..ImageOptions::new(u32::try_from(size).ok()?)
+        };
+        Some(ImageDefaults { steps: self.steps, guidance: self.guidance, decode })
+    }
+}
+
+/// The answer to an image request on a server without an image model.
+pub(crate) fn no_image_model() -> ApiError {
+    ApiError::from(EngineError::Unsupported(
+        "this server has no image model: start it with a model folder that has a dit/ \
+         subfolder"
+            .into(),
+    ))
 }
 
 /// The encoder's input for a mesh or point cloud in the caller's coordinates. CPU work.
@@ -72,6 +116,13 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
             "parameters": model.parameter_count(),
             "config": model,
         },
+        "image_model": engine.diffusion_config().map(|d| json!({
+            "parameters": d.parameter_count(),
+            "config": d,
+            "default_steps": cfg.image.steps,
+            "default_guidance": cfg.image.guidance,
+            "max_image_side": cfg.image.max_side,
+        })),
         "engine": engine.config(),
         "limits": {
             "max_faces": engine.face_limit(),
@@ -119,6 +170,7 @@ pub async fn serve(
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
         request_timeout: cfg.request_timeout,
+        image: cfg.image.defaults(&engine),
         info: Arc::new(info_document(&engine, &cfg)),
     };
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -138,6 +190,7 @@ pub async fn serve(
     let generator = MeshGeneratorServer::new(grpc::GrpcService {
         engine: engine.clone(),
         limits: cfg.limits,
+        image: cfg.image.defaults(&engine),
         request_timeout: cfg.request_timeout,
     })
     .max_decoding_message_size(cfg.max_body_bytes);

@@ -1,0 +1,89 @@
+//! What `reconstruct` and `generate` share: the decoding flags, and latents to a mesh file
+//! with a progress spinner.
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use candle_core::Tensor;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use meshstream::mesh::{Format, Normalization, write_mesh_file};
+use meshstream::model::{FaceModel, GenerateOptions, SamplingParams, generate};
+use meshstream::tokenize::{Quantizer, detokenize};
+
+#[derive(Args)]
+pub struct DecodeArgs {
+    /// Where to write the mesh.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Output format, if not the output's extension.
+    #[arg(long)]
+    pub format: Option<Format>,
+    /// Face budget (at most the model's limit).
+    #[arg(long)]
+    pub max_faces: Option<usize>,
+    /// 0 decodes greedily (the paper's default).
+    #[arg(long, default_value_t = 0.0)]
+    pub temperature: f32,
+    #[arg(long)]
+    pub top_k: Option<usize>,
+    #[arg(long)]
+    pub top_p: Option<f32>,
+}
+
+/// A spinner or bar on stderr with `template`, left plain if the template does not parse.
+pub fn progress(bar: ProgressBar, template: &str) -> ProgressBar {
+    if let Ok(style) = ProgressStyle::with_template(template) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+/// Decodes `latents` (K, latent_dim) into faces, takes them to the caller's frame with
+/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not
+/// 0. Reports what it wrote, timed from `start`.
+pub fn decode_to_file(
+    model: &FaceModel,
+    latents: &Tensor,
+    args: &DecodeArgs,
+    seed: u64,
+    normalization: Normalization,
+    start: Instant,
+) -> anyhow::Result<()> {
+    let cfg = model.config();
+    let options = GenerateOptions {
+        sampling: SamplingParams {
+            temperature: args.temperature,
+            top_k: args.top_k,
+            top_p: args.top_p,
+            seed,
+        },
+        max_faces: args.max_faces.unwrap_or(cfg.max_faces),
+        ..GenerateOptions::default()
+    };
+    let bar =
+        progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
+    let (faces, reason) = generate(model, latents, options, |_| {
+        bar.inc(1);
+        ControlFlow::Continue(())
+    })?;
+    bar.finish_and_clear();
+    let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
+    let mesh = normalization.invert_mesh(&detokenize(&faces, q));
+    anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
+    write(&mesh, &args.output, args.format)?;
+    eprintln!(
+        "wrote {}: {} faces, {} vertices in {:.1} s (stopped by {reason:?})",
+        args.output.display(),
+        mesh.faces.len(),
+        mesh.vertices.len(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn write(mesh: &meshstream::mesh::Mesh, path: &Path, format: Option<Format>) -> anyhow::Result<()> {
+    write_mesh_file(mesh, path, format).with_context(|| format!("writing {}", path.display()))
+}
