@@ -60,7 +60,9 @@ impl AutoencoderId {
 
 /// A content fingerprint, not a security hash: it only has to notice a changed weights file.
 fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3))
+    bytes
+        .iter()
+        .fold(0xcbf2_9ce4_8422_2325, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3))
 }
 
 /// Everything a cache is built from.
@@ -250,8 +252,8 @@ impl LatentCache {
             ),
         ]);
         candle_core::safetensors::save(&tensors, dir.join(TENSORS_FILE))?;
-        let json =
-            serde_json::to_string_pretty(&self.info).map_err(|e| TrainError::Json(e.to_string()))?;
+        let json = serde_json::to_string_pretty(&self.info)
+            .map_err(|e| TrainError::Json(e.to_string()))?;
         std::fs::write(&info_path, json).map_err(io(&info_path))
     }
 
@@ -272,7 +274,8 @@ impl LatentCache {
         let spec = &info.spec;
         let s = spec.view.size as usize;
         let (k, d) = (spec.autoencoder.config.num_latents, spec.autoencoder.config.latent_dim);
-        if latents.dims() != [info.entries, k, d] || images.dims() != [info.entries, spec.views, s, s, 3]
+        if latents.dims() != [info.entries, k, d]
+            || images.dims() != [info.entries, spec.views, s, s, 3]
         {
             return Err(bad(format!(
                 "shapes {:?} and {:?} do not match {}",
@@ -312,7 +315,9 @@ fn source_meshes(spec: &CacheSpec) -> Result<(Vec<(String, Mesh)>, CacheSkips), 
     let shapes = ProceduralShapes::new(spec.seed, ae.max_faces);
     for (i, (kind, mesh)) in shapes.take(spec.procedural).enumerate() {
         match mesh.normalized() {
-            Ok((normalized, _)) => sources.push((format!("procedural-{i:05}-{kind:?}"), normalized)),
+            Ok((normalized, _)) => {
+                sources.push((format!("procedural-{i:05}-{kind:?}"), normalized))
+            }
             Err(_) => skipped.no_faces += 1,
         }
     }

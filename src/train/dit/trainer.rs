@@ -22,8 +22,8 @@ use super::super::TrainError;
 use super::super::checkpoint::{self, RunDir, TrainState};
 use super::super::dataset::load_folder;
 use super::super::log::{LogRecord, LogWriter};
-use super::super::trainer::progress_bar;
 use super::super::optim::{Optimizer, Rule, clip_grad_norm, default_rule, learning_rate};
+use super::super::trainer::progress_bar;
 use super::cache::{AutoencoderId, LatentCache};
 use super::evaluate::{DitEvalReport, DitEvalSet, evaluate};
 use super::views::images_tensor;
@@ -300,11 +300,11 @@ impl DitTrainer {
             bar.set_position(self.state.step);
             bar.set_message(format!("loss {loss:.4}  {samples_per_s:.1} samples/s"));
             let step = self.state.step;
-            if step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end {
-                if let Some(report) = bar.suspend(|| self.evaluate_and_keep_best())? {
-                    bar.println(super::evaluate::eval_line(step, &report));
-                    last_eval = Some((step, report));
-                }
+            if (step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end)
+                && let Some(report) = bar.suspend(|| self.evaluate_and_keep_best())?
+            {
+                bar.println(super::evaluate::eval_line(step, &report));
+                last_eval = Some((step, report));
             }
             if step.is_multiple_of(self.cfg.checkpoint_every.max(1)) {
                 self.save_checkpoint()?;
@@ -331,7 +331,8 @@ impl DitTrainer {
         if self.eval_set.is_empty() {
             return Ok(None);
         }
-        let model = dit_checkpoint::inference_model(&self.cfg.model, &self.varmap, &self.device, None)?;
+        let model =
+            dit_checkpoint::inference_model(&self.cfg.model, &self.varmap, &self.device, None)?;
         let report = evaluate(&model, &self.autoencoder, &self.eval_set, &self.cfg.eval)?;
         self.log.write(&LogRecord::DitEval {
             step: self.state.step,

@@ -89,7 +89,11 @@ pub fn render_rgb(mesh: &Mesh, options: &RenderOptions) -> Result<Vec<u8>, Rende
 
 /// Stacked row-major RGB images (each `size * size * 3` bytes) as the encoder's input:
 /// (B, 3, size, size) f32 in [0, 1].
-pub fn images_tensor(images: &[&[u8]], size: usize, device: &Device) -> candle_core::Result<Tensor> {
+pub fn images_tensor(
+    images: &[&[u8]],
+    size: usize,
+    device: &Device,
+) -> candle_core::Result<Tensor> {
     let data: Vec<u8> = images.iter().flat_map(|img| img.iter().copied()).collect();
     Tensor::from_vec(data, (images.len(), size, size, 3), device)?
         .to_dtype(DType::F32)?
