@@ -186,4 +186,15 @@ fn refuses_to_overwrite_a_run_and_needs_an_autoencoder() {
         .unwrap();
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("--ae"));
+
+    // The base preset needs a DINOv2 backbone: refused before any cache is built.
+    let out = tmp.path().join("base");
+    let output = train_bin()
+        .args(["dit", "--ae", ae.to_str().unwrap(), "--preset", "base"])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("DINOv2"));
+    assert!(!out.join("latent-cache").exists());
 }

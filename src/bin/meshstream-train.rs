@@ -362,6 +362,14 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
     let autoencoder = AutoencoderId::of(&ae_dir)
         .with_context(|| format!("reading the autoencoder {}", ae_dir.display()))?;
     let mut model = DitConfig::preset(&args.preset)?;
+    if let ImageEncoderConfig::Dinov2(_) = model.image_encoder {
+        // Checked before the latent cache is built, which would otherwise be wasted.
+        bail!(
+            "preset {:?} uses a frozen DINOv2 encoder, which `dit` training does not load yet; \
+             use a patch-encoder preset (tiny)",
+            args.preset
+        );
+    }
     model.num_latents = autoencoder.config.num_latents;
     model.latent_dim = autoencoder.config.latent_dim;
     model.latent_stats = LatentStats::identity(model.latent_dim);
