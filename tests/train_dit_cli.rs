@@ -198,3 +198,34 @@ fn refuses_to_overwrite_a_run_and_needs_an_autoencoder() {
     assert!(String::from_utf8_lossy(&output.stderr).contains("DINOv2"));
     assert!(!out.join("latent-cache").exists());
 }
+
+#[test]
+fn resume_refuses_an_autoencoder_that_changed_since_the_cache_was_built() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ae = tmp.path().join("ae");
+    std::fs::create_dir_all(&ae).unwrap();
+    for file in ["config.json", "model.safetensors"] {
+        std::fs::copy(autoencoder().join(file), ae.join(file)).unwrap();
+    }
+    let out = tmp.path().join("run");
+    let create = train_bin()
+        .args(["dit", "--no-progress", "--stop-at", "0", "--ae", ae.to_str().unwrap()])
+        .args(["--out", out.to_str().unwrap(), "--width", "32", "--layers", "1"])
+        .args(["--procedural", "2", "--augmentations", "1", "--views", "1"])
+        .output()
+        .unwrap();
+    assert!(create.status.success(), "{}", String::from_utf8_lossy(&create.stderr));
+
+    let weights = ae.join("model.safetensors");
+    let mut bytes = std::fs::read(&weights).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&weights, bytes).unwrap();
+    let resume = train_bin()
+        .args(["dit", "--no-progress", "--resume", "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!resume.status.success());
+    let stderr = String::from_utf8_lossy(&resume.stderr);
+    assert!(stderr.contains("autoencoder differs"), "{stderr}");
+}
