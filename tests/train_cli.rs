@@ -87,7 +87,7 @@ fn step_losses(log: &Path) -> Vec<(u64, f64)> {
         .into_iter()
         .filter_map(|r| match r {
             LogRecord::Step { step, loss, .. } => Some((step, loss)),
-            LogRecord::Eval { .. } => None,
+            _ => None,
         })
         .collect()
 }

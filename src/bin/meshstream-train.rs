@@ -1,14 +1,21 @@
-//! `meshstream-train`: train FACE autoencoders, export their weights, plot their curves.
+//! `meshstream-train`: train FACE autoencoders and image-to-latent diffusion models, export
+//! their weights, plot their curves.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use candle_core::DType;
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
 use meshstream::model::{FaceConfig, parse_device};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::checkpoint::{RunDir, export};
+use meshstream::train::dit::DitTrainConfig;
+use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
+use meshstream::train::dit::evaluate::{DitEvalOptions, eval_line as dit_eval_line};
+use meshstream::train::dit::trainer::DitTrainer;
+use meshstream::train::dit::views::ViewConfig;
 use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
@@ -27,6 +34,8 @@ struct Cli {
 enum Command {
     /// Train the point-cloud autoencoder (encoder + autoregressive face decoder).
     Ae(Box<AeArgs>),
+    /// Train the image-to-latent diffusion model (DiT) against a frozen autoencoder.
+    Dit(Box<DitArgs>),
     /// Write just what inference needs (config.json + model.safetensors) from a run or checkpoint.
     Export {
         /// A run folder (its best weights are exported), or a checkpoint or model folder.
@@ -137,9 +146,115 @@ struct AeArgs {
     no_progress: bool,
 }
 
+#[derive(Args)]
+struct DitArgs {
+    /// Run folder: train.json, latent-cache/, checkpoint/, best/, log.jsonl.
+    #[arg(long)]
+    out: PathBuf,
+    /// The frozen autoencoder (a model folder such as models/default).
+    #[arg(long, required_unless_present = "resume")]
+    ae: Option<PathBuf>,
+    /// Continue the run in --out exactly from its last checkpoint (its train.json is used;
+    /// only --steps may change).
+    #[arg(long)]
+    resume: bool,
+    /// Start from the weights of an exported diffusion model with the same architecture.
+    #[arg(long, conflicts_with = "resume")]
+    init: Option<PathBuf>,
+    /// Diffusion preset: tiny or base (K and the latent width always follow the autoencoder).
+    #[arg(long, default_value = "tiny")]
+    preset: String,
+    /// Override the preset's width (DiT and patch encoder; MLPs are 4x).
+    #[arg(long)]
+    width: Option<usize>,
+    /// Override the preset's number of DiT blocks.
+    #[arg(long)]
+    layers: Option<usize>,
+    /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
+    /// run trains on procedural shapes only.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    #[arg(long, default_value = "train")]
+    split: String,
+    #[arg(long, default_value = "dev")]
+    eval_split: String,
+    /// Procedural shapes added to the training meshes.
+    #[arg(long, default_value_t = 256)]
+    procedural: usize,
+    /// Augmented copies of each training mesh in the latent cache.
+    #[arg(long, default_value_t = 4)]
+    augmentations: usize,
+    /// Rendered views of each augmented copy.
+    #[arg(long, default_value_t = 4)]
+    views: usize,
+    /// Augmentation rotation. The renderer's up axis is +Y, so the autoencoder trainer's
+    /// `upright` (about z) would tilt the views; the camera azimuth already turns the mesh.
+    #[arg(long, value_enum, default_value_t = Rotation::None)]
+    rotation: Rotation,
+    /// Mirroring probability per axis (a y flip shows the mesh upside down).
+    #[arg(long, default_value_t = 0.0)]
+    flip_probability: f32,
+    #[arg(long, default_value_t = 0.25)]
+    scale_jitter: f32,
+    /// Length of the run: the learning-rate schedule spans this many steps.
+    #[arg(long, default_value_t = 20_000)]
+    steps: u64,
+    /// End this session at this step (checkpointed; continue later with --resume).
+    #[arg(long)]
+    stop_at: Option<u64>,
+    /// (latent, view) pairs per step.
+    #[arg(long, default_value_t = 32)]
+    batch: usize,
+    #[arg(long, default_value_t = 3e-4)]
+    lr: f64,
+    #[arg(long, default_value_t = 500)]
+    warmup: u64,
+    /// The cosine schedule ends at lr x this.
+    #[arg(long, default_value_t = 0.1)]
+    min_lr_ratio: f64,
+    /// The paper trains the DiT without weight decay.
+    #[arg(long, default_value_t = 0.0)]
+    weight_decay: f64,
+    #[arg(long, default_value_t = 1.0)]
+    grad_clip: f64,
+    /// AdamW for every parameter instead of Muon for the block matrices (the paper's choice).
+    #[arg(long)]
+    adamw: bool,
+    #[arg(long, default_value_t = 250)]
+    checkpoint_every: u64,
+    #[arg(long, default_value_t = 1000)]
+    eval_every: u64,
+    /// Held-aside meshes of --eval-split (the first, by name).
+    #[arg(long, default_value_t = 8)]
+    eval_meshes: usize,
+    /// Held-aside procedural shapes.
+    #[arg(long, default_value_t = 4)]
+    eval_procedural: usize,
+    /// Euler steps when sampling for evaluation.
+    #[arg(long, default_value_t = 25)]
+    eval_steps: usize,
+    /// Classifier-free guidance scale when sampling for evaluation.
+    #[arg(long, default_value_t = 3.0)]
+    guidance: f32,
+    /// Face budget of the evaluation's greedy decoding (default: the autoencoder's limit).
+    #[arg(long)]
+    eval_max_faces: Option<usize>,
+    #[arg(long, default_value_t = 20_000)]
+    eval_samples: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// cpu or cuda:N (with --features cuda).
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// No progress bars (logs only), e.g. under CI.
+    #[arg(long)]
+    no_progress: bool,
+}
+
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Ae(args) => train_ae(&args),
+        Command::Dit(args) => train_dit(&args),
         Command::Export { from, output, dtype } => {
             let from = model_folder(&from);
             let dtype = match dtype {
@@ -204,6 +319,116 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
         eprintln!("{}", eval_line(*step, report));
     }
     Ok(())
+}
+
+fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
+    let device = parse_device(&args.device)?;
+    let progress = !args.no_progress;
+    let mut trainer = if args.resume {
+        DitTrainer::resume(args.out.clone(), device, Some(args.steps))
+            .with_context(|| format!("resuming {}", args.out.display()))?
+    } else {
+        if RunDir(args.out.clone()).checkpoint().exists() {
+            bail!(
+                "{} already holds a run: pass --resume, or choose another --out",
+                args.out.display()
+            );
+        }
+        let cfg = dit_config_from_args(args)?;
+        DitTrainer::create(cfg, args.out.clone(), args.init.as_deref(), device, progress)?
+    };
+    eprintln!("{}", trainer.data_summary());
+    let mut counts: Vec<_> = trainer.parameter_counts().into_iter().collect();
+    counts.sort();
+    eprintln!("parameters by optimizer: {counts:?}");
+    let stop = stop_flag_on_ctrl_c();
+    let summary = trainer.run(&stop, args.stop_at, progress)?;
+    let state = &summary.state;
+    eprintln!(
+        "{} at step {} after {:.0} s of training; checkpoint in {}",
+        if summary.interrupted || state.step < args.steps { "stopped" } else { "finished" },
+        state.step,
+        state.elapsed_s,
+        RunDir(args.out.clone()).checkpoint().display()
+    );
+    if let Some((step, report)) = &summary.last_eval {
+        eprintln!("{}", dit_eval_line(*step, report));
+    }
+    Ok(())
+}
+
+fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
+    let ae_dir = args.ae.clone().context("--ae is required for a new run")?;
+    let autoencoder = AutoencoderId::of(&ae_dir)
+        .with_context(|| format!("reading the autoencoder {}", ae_dir.display()))?;
+    let mut model = DitConfig::preset(&args.preset)?;
+    if let ImageEncoderConfig::Dinov2(_) = model.image_encoder {
+        // Checked before the latent cache is built, which would otherwise be wasted.
+        bail!(
+            "preset {:?} uses a frozen DINOv2 encoder, which `dit` training does not load yet; \
+             use a patch-encoder preset (tiny)",
+            args.preset
+        );
+    }
+    model.num_latents = autoencoder.config.num_latents;
+    model.latent_dim = autoencoder.config.latent_dim;
+    model.latent_stats = LatentStats::identity(model.latent_dim);
+    if let Some(width) = args.width {
+        model.width = width;
+        model.mlp_hidden = 4 * width;
+        if let ImageEncoderConfig::Patch(p) = &mut model.image_encoder {
+            p.width = width;
+            p.mlp_hidden = 4 * width;
+        }
+    }
+    if let Some(layers) = args.layers {
+        model.layers = layers;
+    }
+    model.validate()?;
+    let view = ViewConfig::new(
+        u32::try_from(model.image_encoder.image_size()).context("image size too large")?,
+    );
+    let max_faces = args.eval_max_faces.unwrap_or(autoencoder.config.max_faces);
+    Ok(DitTrainConfig {
+        cache: CacheSpec {
+            data: args.data.clone(),
+            split: args.split.clone(),
+            procedural: args.procedural,
+            augmentations: args.augmentations,
+            views: args.views,
+            augment: AugmentConfig {
+                rotation: args.rotation,
+                flip_probability: args.flip_probability,
+                scale_jitter: args.scale_jitter,
+            },
+            view,
+            seed: args.seed,
+            autoencoder,
+        },
+        model,
+        autoencoder: ae_dir,
+        eval_split: args.eval_split.clone(),
+        eval_folder_meshes: args.eval_meshes,
+        eval_procedural: args.eval_procedural,
+        eval: DitEvalOptions {
+            steps: args.eval_steps,
+            guidance: args.guidance,
+            seed: args.seed,
+            max_faces,
+            metric_samples: args.eval_samples,
+        },
+        batch: args.batch,
+        optim: OptimConfig { weight_decay: args.weight_decay, ..OptimConfig::default() },
+        muon: !args.adamw,
+        lr: args.lr,
+        warmup_steps: args.warmup,
+        min_lr_ratio: args.min_lr_ratio,
+        steps: args.steps,
+        grad_clip: args.grad_clip,
+        checkpoint_every: args.checkpoint_every,
+        eval_every: args.eval_every,
+        seed: args.seed,
+    })
 }
 
 fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {

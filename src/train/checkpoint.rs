@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use serde::{Deserialize, Serialize};
 
-use crate::model::{FaceConfig, checkpoint as model_checkpoint};
+use crate::model::checkpoint as model_checkpoint;
 
 use super::TrainError;
 use super::optim::Optimizer;
@@ -37,6 +37,10 @@ impl RunDir {
     pub fn log(&self) -> PathBuf {
         self.0.join("log.jsonl")
     }
+    /// The diffusion runs' latent cache (latents and rendered views, with their description).
+    pub fn latent_cache(&self) -> PathBuf {
+        self.0.join("latent-cache")
+    }
 }
 
 /// Progress that is not in the tensors.
@@ -56,7 +60,7 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
 /// interrupted save never leaves a half-written checkpoint behind.
 pub fn save(
     dir: &Path,
-    cfg: &FaceConfig,
+    cfg: &impl Serialize,
     varmap: &VarMap,
     optimizer: &Optimizer,
     state: &TrainState,
@@ -65,7 +69,7 @@ pub fn save(
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
     }
-    model_checkpoint::save(&tmp, cfg, varmap)?;
+    model_checkpoint::save_checkpoint(&tmp, cfg, varmap)?;
     candle_core::safetensors::save(&optimizer.state()?, tmp.join(OPTIMIZER_FILE))?;
     let state_path = tmp.join(STATE_FILE);
     let json = serde_json::to_string_pretty(state).map_err(|e| TrainError::Json(e.to_string()))?;
@@ -122,9 +126,17 @@ pub fn load_weights(dir: &Path, varmap: &VarMap, device: &Device) -> Result<(), 
 }
 
 /// Writes what inference needs (`config.json` + `model.safetensors`, no optimizer state) from
-/// a checkpoint or model directory, with the weights stored as `dtype` (F16 halves the size).
+/// a checkpoint or model directory of a face autoencoder or a diffusion model, with the
+/// weights stored as `dtype` (F16 halves the size).
 pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
-    let cfg = model_checkpoint::load_config(from)?;
+    let json = match model_checkpoint::load_config(from) {
+        Ok(face) => serde_json::to_string_pretty(&face),
+        Err(face_err) => match crate::diffusion::checkpoint::load_config(from) {
+            Ok(dit) => serde_json::to_string_pretty(&dit),
+            Err(_) => return Err(face_err.into()),
+        },
+    }
+    .map_err(|e| TrainError::Json(e.to_string()))?;
     let src = from.join(model_checkpoint::WEIGHTS_FILE);
     let tensors = candle_core::safetensors::load(&src, &Device::Cpu)?;
     let converted = tensors
@@ -133,7 +145,6 @@ pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
         .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
     std::fs::create_dir_all(to).map_err(io(to))?;
     let cfg_path = to.join(model_checkpoint::CONFIG_FILE);
-    let json = serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
     std::fs::write(&cfg_path, json).map_err(io(&cfg_path))?;
     candle_core::safetensors::save(&converted, to.join(model_checkpoint::WEIGHTS_FILE))?;
     Ok(())

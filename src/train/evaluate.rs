@@ -132,16 +132,25 @@ pub fn reconstruct(
         let examples: Vec<TrainExample> = chunk.iter().map(|(_, s)| example(s)).collect();
         let b = TrainBatch::new(&examples, device)?;
         let latents = model.encode(&b.points, &b.normals, &b.query_indices)?;
-        let mut gens = (0..chunk.len())
-            .map(|r| Generation::new(model, &latents.get(r)?, GenerateOptions::default()))
-            .collect::<Result<Vec<_>, _>>()?;
-        while gens.iter().any(|g| !g.is_finished()) {
-            let mut refs: Vec<&mut Generation> = gens.iter_mut().collect();
-            step_generations(model, &mut refs)?;
-        }
-        out.extend(gens.iter().map(|g| g.faces().to_vec()));
+        out.extend(greedy_decode(model, &latents, GenerateOptions::default())?);
     }
     Ok(out)
+}
+
+/// Greedy decoding of every row of `latents` (B, K, d) together, one batched step per face.
+pub fn greedy_decode(
+    model: &FaceModel,
+    latents: &candle_core::Tensor,
+    options: GenerateOptions,
+) -> Result<Vec<Vec<crate::tokenize::FaceToken>>, crate::model::ModelError> {
+    let mut gens = (0..latents.dim(0)?)
+        .map(|r| Generation::new(model, &latents.get(r)?, options.clone()))
+        .collect::<Result<Vec<_>, _>>()?;
+    while gens.iter().any(|g| !g.is_finished()) {
+        let mut refs: Vec<&mut Generation> = gens.iter_mut().collect();
+        step_generations(model, &mut refs)?;
+    }
+    Ok(gens.iter().map(|g| g.faces().to_vec()).collect())
 }
 
 pub fn example(s: &TrainingSample) -> TrainExample<'_> {

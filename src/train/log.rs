@@ -6,6 +6,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::TrainError;
+use super::dit::evaluate::DitEvalReport;
 use super::evaluate::EvalReport;
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -30,6 +31,25 @@ pub enum LogRecord {
         split: String,
         #[serde(flatten)]
         report: EvalReport,
+        elapsed_s: f64,
+    },
+    /// One optimizer step of the diffusion model.
+    DitStep {
+        step: u64,
+        /// Flow-matching loss (mean squared velocity error on normalized latents).
+        loss: f64,
+        lr: f64,
+        grad_norm: f64,
+        /// (latent, view) pairs in the step.
+        samples: usize,
+        samples_per_s: f64,
+        elapsed_s: f64,
+    },
+    DitEval {
+        step: u64,
+        split: String,
+        #[serde(flatten)]
+        report: DitEvalReport,
         elapsed_s: f64,
     },
 }

@@ -5,6 +5,7 @@ pub mod augment;
 pub mod batch;
 pub mod checkpoint;
 pub mod dataset;
+pub mod dit;
 mod error;
 pub mod evaluate;
 pub mod log;

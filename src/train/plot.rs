@@ -18,17 +18,38 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
     let mut train = Vec::new();
     let mut eval_loss = Vec::new();
     let mut eval_cd = Vec::new();
+    // A log holds one kind of run; a diffusion run's records name its own loss and pipeline.
+    let mut diffusion = false;
     for r in records {
-        match r {
-            LogRecord::Step { step, coord_loss, .. } => train.push((*step as f64, *coord_loss)),
-            LogRecord::Eval { step, report, .. } => {
-                eval_loss.push((*step as f64, report.loss));
-                if let Some(cd) = report.chamfer_mean {
-                    eval_cd.push((*step as f64, cd));
-                }
+        let (step, eval) = match r {
+            LogRecord::Step { step, coord_loss, .. } => {
+                train.push((*step as f64, *coord_loss));
+                continue;
             }
+            LogRecord::DitStep { step, loss, .. } => {
+                diffusion = true;
+                train.push((*step as f64, *loss));
+                continue;
+            }
+            LogRecord::Eval { step, report, .. } => (step, (report.loss, report.chamfer_mean)),
+            LogRecord::DitEval { step, report, .. } => (step, (report.loss, report.chamfer_mean)),
+        };
+        eval_loss.push((*step as f64, eval.0));
+        if let Some(cd) = eval.1 {
+            eval_cd.push((*step as f64, cd));
         }
     }
+    let (loss_caption, cd_caption) = if diffusion {
+        (
+            "flow-matching loss (velocity MSE, normalized latents)",
+            "evaluation Chamfer distance (fixed view -> DiT -> greedy decoding)",
+        )
+    } else {
+        (
+            "loss (nats per face, 9 coordinates summed)",
+            "evaluation Chamfer distance (greedy reconstruction)",
+        )
+    };
     if train.is_empty() {
         return Err(fail(&"the log has no training steps"));
     }
@@ -42,7 +63,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
     root.fill(&WHITE).map_err(|e| fail(&e))?;
     let (top, bottom) = root.split_vertically(480);
     let mut chart = ChartBuilder::on(&top)
-        .caption("loss (nats per face, 9 coordinates summed)", ("sans-serif", 22))
+        .caption(loss_caption, ("sans-serif", 22))
         .margin(12)
         .x_label_area_size(36)
         .y_label_area_size(56)
@@ -73,7 +94,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
 
     let cd_hi = eval_cd.iter().map(|p| p.1).fold(0.01, f64::max);
     let mut chart = ChartBuilder::on(&bottom)
-        .caption("evaluation Chamfer distance (greedy reconstruction)", ("sans-serif", 22))
+        .caption(cd_caption, ("sans-serif", 22))
         .margin(12)
         .x_label_area_size(36)
         .y_label_area_size(56)

@@ -341,7 +341,7 @@ fn add_grads(acc: &mut GradStore, more: &GradStore, vars: &[Var]) -> Result<(), 
     Ok(())
 }
 
-fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
+pub(crate) fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
     if !visible {
         return ProgressBar::hidden();
     }
