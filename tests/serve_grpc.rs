@@ -41,6 +41,7 @@ async fn the_stream_delivers_faces_incrementally_equal_to_the_http_mesh() {
                 faces.extend(chunk.faces);
             }
             reconstruct_response::Event::Done(s) => stats = Some(s),
+            reconstruct_response::Event::Progress(p) => panic!("progress {p:?} for points"),
         }
     }
     let stats = stats.expect("a final stats message");

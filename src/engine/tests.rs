@@ -30,7 +30,7 @@ fn request(model: &FaceModel, id: usize, max_faces: usize) -> Request {
 
 /// What one request decodes alone, without the engine.
 fn reference_faces(model: &FaceModel, request: &Request, max_faces: usize) -> Vec<FaceToken> {
-    let Conditioning::Points(p) = &request.conditioning;
+    let Conditioning::Points(p) = &request.conditioning else { unreachable!() };
     let latents = scheduler_encode(model, p);
     let opts = GenerateOptions { max_faces, ..GenerateOptions::default() };
     let mut g = Generation::new(model, &latents, opts).unwrap();
@@ -84,7 +84,7 @@ fn concurrent_requests_decode_in_batches_exactly_as_alone() {
 fn faces_arrive_in_the_callers_coordinates() {
     let (engine, model) = engine(EngineConfig::default());
     let r = request(&model, 4, 20);
-    let Conditioning::Points(p) = &r.conditioning;
+    let Conditioning::Points(p) = &r.conditioning else { unreachable!() };
     let normalization = p.normalization;
     let mut stream = engine.submit(r).unwrap();
     runtime().block_on(async {
@@ -104,6 +104,7 @@ fn faces_arrive_in_the_callers_coordinates() {
                     break;
                 }
                 Event::Failed(e) => panic!("{e}"),
+                Event::Progress { .. } => panic!("progress events are for image requests"),
             }
         }
         // The sphere was shifted to x = 4: so are the faces.
@@ -200,4 +201,157 @@ fn the_deadline_ends_a_request_with_an_error() {
         ),
         "{last:?}"
     );
+}
+
+/// An engine with an image model whose latents fit the micro face model.
+fn image_engine(config: EngineConfig) -> (Engine, FaceModel, crate::diffusion::DiffusionModel) {
+    let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+    let (_, model) = random_model(&cfg);
+    let dit_cfg = crate::diffusion::DitConfig {
+        num_latents: cfg.num_latents,
+        latent_dim: cfg.latent_dim,
+        latent_stats: crate::diffusion::LatentStats::identity(cfg.latent_dim),
+        ..crate::diffusion::DitConfig::micro()
+    };
+    let (varmap, dit) = crate::diffusion::checkpoint::random_varmap(&dit_cfg);
+    let same = crate::diffusion::checkpoint::inference_model(
+        &dit_cfg,
+        &varmap,
+        &candle_core::Device::Cpu,
+        None,
+    )
+    .unwrap();
+    let engine =
+        Engine::start(model.clone(), Some(same), config, Arc::new(Metrics::default())).unwrap();
+    (engine, model, dit)
+}
+
+fn image_request(id: usize, steps: usize, guidance: f32, max_faces: usize) -> Request {
+    let shade = 40 + 50 * id as u8;
+    let img =
+        image::RgbImage::from_fn(24, 20, |x, y| image::Rgb([shade, (x * 9) as u8, (y * 11) as u8]));
+    let mut png = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut png, image::ImageFormat::Png).unwrap();
+    let image =
+        crate::diffusion::decode_image(png.get_ref(), &crate::diffusion::ImageOptions::new(16))
+            .unwrap();
+    Request {
+        id: format!("img{id}"),
+        conditioning: Conditioning::Image(ImagePrompt { image, steps, guidance, seed: id as u64 }),
+        options: DecodeOptions { max_faces: Some(max_faces), sampling: SamplingParams::greedy() },
+        deadline: None,
+    }
+}
+
+/// What an image request gives without the engine: sampled alone, decoded alone.
+fn reference_image_faces(
+    model: &FaceModel,
+    dit: &crate::diffusion::DiffusionModel,
+    request: &Request,
+    max_faces: usize,
+) -> Vec<FaceToken> {
+    use rand::SeedableRng;
+    let Conditioning::Image(p) = &request.conditioning else { unreachable!() };
+    let images = crate::diffusion::images_to_tensor(
+        std::slice::from_ref(&p.image),
+        &candle_core::Device::Cpu,
+    )
+    .unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(p.seed);
+    let latents = dit.generate(&images, vec![p.guidance], p.steps, &mut rng).unwrap();
+    let opts = GenerateOptions { max_faces, ..GenerateOptions::default() };
+    let mut g = Generation::new(model, &latents.get(0).unwrap(), opts).unwrap();
+    while !g.is_finished() {
+        step_generations(model, &mut [&mut g]).unwrap();
+    }
+    g.faces().to_vec()
+}
+
+#[test]
+fn image_requests_report_progress_then_decode_as_alone_next_to_point_requests() {
+    let (engine, model, dit) = image_engine(EngineConfig::default());
+    let images: Vec<Request> =
+        [(0, 3, 1.0), (1, 6, 2.5), (2, 4, 0.0)].map(|(i, s, g)| image_request(i, s, g, 15)).into();
+    let expected: Vec<_> =
+        images.iter().map(|r| reference_image_faces(&model, &dit, r, 15)).collect();
+    let points = request(&model, 5, 10);
+    let points_expected = reference_faces(&model, &points, 10);
+    let mut streams: Vec<_> = images.into_iter().map(|r| engine.submit(r).unwrap()).collect();
+    let points_stream = engine.submit(points).unwrap();
+    let results = runtime().block_on(async {
+        let mut out = Vec::new();
+        for s in &mut streams {
+            let mut progress = Vec::new();
+            let mut tokens = Vec::new();
+            while let Some(event) = s.next().await {
+                match event {
+                    Event::Progress { step, steps } => {
+                        assert!(tokens.is_empty(), "progress after a face");
+                        progress.push((step, steps));
+                    }
+                    Event::Face(f) => tokens.push(f.token),
+                    Event::Finished(_) => break,
+                    Event::Failed(e) => panic!("{e}"),
+                }
+            }
+            out.push((progress, tokens));
+        }
+        (out, points_stream.collect().await.unwrap())
+    });
+    let (image_results, points_done) = results;
+    for (i, ((progress, tokens), want)) in image_results.iter().zip(&expected).enumerate() {
+        let steps = [3, 6, 4][i];
+        let all: Vec<_> = (1..=steps).map(|k| (k, steps)).collect();
+        assert_eq!(progress, &all, "request {i}");
+        assert_eq!(tokens, want, "request {i}");
+    }
+    assert_eq!(points_done.tokens, points_expected);
+    // The three were admitted together and sampled in one batch.
+    let text = engine.metrics().render();
+    assert!(text.contains("meshstream_diffusion_steps_total 6"), "{text}");
+    assert!(text.contains("meshstream_diffusion_batch_size_bucket{le=\"2.0\"} 3"), "{text}");
+}
+
+#[test]
+fn image_requests_are_checked_and_refused_without_an_image_model() {
+    let (plain, _) = engine(EngineConfig::default());
+    assert!(matches!(plain.submit(image_request(0, 3, 1.0, 5)), Err(EngineError::Unsupported(_))));
+    let (engine, _, _) =
+        image_engine(EngineConfig { max_diffusion_steps: 10, ..EngineConfig::default() });
+    for (steps, guidance) in [(0, 1.0), (11, 1.0), (3, -0.5), (3, f32::NAN), (3, 25.0)] {
+        let r = engine.submit(image_request(0, steps, guidance, 5));
+        assert!(
+            matches!(r, Err(EngineError::InvalidInput(_))),
+            "steps {steps} guidance {guidance}"
+        );
+    }
+    let mut wrong_size = image_request(0, 3, 1.0, 5);
+    if let Conditioning::Image(p) = &mut wrong_size.conditioning {
+        let png = {
+            let mut c = std::io::Cursor::new(Vec::new());
+            image::RgbImage::new(8, 8).write_to(&mut c, image::ImageFormat::Png).unwrap();
+            c.into_inner()
+        };
+        p.image =
+            crate::diffusion::decode_image(&png, &crate::diffusion::ImageOptions::new(8)).unwrap();
+    }
+    assert!(matches!(engine.submit(wrong_size), Err(EngineError::InvalidInput(_))));
+}
+
+#[test]
+fn a_cancelled_image_request_leaves_the_diffusion_batch() {
+    let (engine, _, _) =
+        image_engine(EngineConfig { max_diffusion_steps: 100_000, ..EngineConfig::default() });
+    let stream = engine.submit(image_request(1, 100_000, 2.0, 5)).unwrap();
+    let t0 = Instant::now();
+    while engine.status().running == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(2));
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    drop(stream);
+    while engine.status().running > 0 {
+        assert!(t0.elapsed() < Duration::from_secs(4), "still diffusing");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(engine.metrics().render().contains("requests_finished_total{reason=\"cancelled\"} 1"));
 }

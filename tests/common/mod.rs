@@ -18,7 +18,11 @@ pub struct Server {
 impl Server {
     /// Starts the server with the shipped model and `extra` flags; waits until it listens.
     pub fn start(extra: &[&str]) -> Server {
-        let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
+        Self::start_with_model(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default"), extra)
+    }
+
+    /// Starts the server with the model in `model`.
+    pub fn start_with_model(model: &str, extra: &[&str]) -> Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
             .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
             .args(["--grpc-addr", "127.0.0.1:0"])
