@@ -2,7 +2,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::mesh::{Format, write_mesh_file};
+use meshstream::mesh::{Format, Normalization, write_mesh_file};
 use meshstream::tokenize::{Quantizer, detokenize, tokenize_mesh};
 
 use super::load_mesh;
@@ -20,6 +20,10 @@ pub struct ConvertArgs {
     /// vertices, drops collapsed and repeated faces, and keeps the input's coordinates.
     #[arg(long, value_name = "Q")]
     quantize: Option<u16>,
+    /// Move the result into the models' frame (bounding box centred at the origin, longest
+    /// side from -1 to 1), where meshes generated from images are: to compare them.
+    #[arg(long)]
+    normalize: bool,
 }
 
 pub fn run(args: &ConvertArgs) -> anyhow::Result<()> {
@@ -35,6 +39,9 @@ pub fn run(args: &ConvertArgs) -> anyhow::Result<()> {
             tokenized.collapsed_faces,
             tokenized.duplicate_faces
         );
+    }
+    if args.normalize {
+        mesh = Normalization::fit(&mesh.vertices).context("normalizing")?.apply_mesh(&mesh);
     }
     write_mesh_file(&mesh, &args.output, args.format)
         .with_context(|| format!("writing {}", args.output.display()))?;

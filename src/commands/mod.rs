@@ -3,6 +3,7 @@
 pub mod baseline;
 pub mod bench;
 pub mod bench_decode;
+pub mod bench_diffusion;
 pub mod bench_serve;
 pub mod convert;
 pub mod decode;

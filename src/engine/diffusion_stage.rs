@@ -55,18 +55,21 @@ impl DiffusionStage {
     }
 
     /// Starts sampling for an image request (its image is encoded now) and adds it to the
-    /// batch; the request is handed back with the error if it cannot start.
-    pub fn join(&mut self, pending: Pending, now: Instant) -> Result<(), (Pending, EngineError)> {
-        let Conditioning::Image(prompt) = &pending.request.conditioning else {
-            return Err((pending, EngineError::Model("not an image request".into())));
+    /// batch; a request that cannot start is failed at once.
+    pub fn join(&mut self, pending: Pending, now: Instant, metrics: &Metrics) {
+        let started = match &pending.request.conditioning {
+            Conditioning::Image(prompt) => self.start(prompt).and_then(|run| self.append(run)),
+            Conditioning::Points(_) => Err(EngineError::Model("not an image request".into())),
         };
-        match self.start(prompt).and_then(|run| self.append(run)) {
+        match started {
             Ok(()) => {
                 let queued = now - pending.submitted;
                 self.rows.push(Diffusing { pending, queued, started: now });
-                Ok(())
             }
-            Err(e) => Err((pending, e)),
+            Err(e) => {
+                metrics.fail(e.code());
+                let _ = pending.tx.try_send(Event::Failed(e));
+            }
         }
     }
 

@@ -235,14 +235,15 @@ impl Scheduler {
         let (points, images): (Vec<Pending>, Vec<Pending>) = admitted
             .into_iter()
             .partition(|p| matches!(p.request.conditioning, Conditioning::Points(_)));
+        let metrics = Arc::clone(&self.shared.metrics);
         for p in images {
-            let joined = match &mut self.diffusion {
-                Some(stage) => stage.join(p, now),
-                None => Err((p, EngineError::Unsupported("this engine has no image model".into()))),
-            };
-            if let Err((p, e)) = joined {
-                self.shared.metrics.fail(e.code());
-                let _ = p.tx.try_send(Event::Failed(e));
+            match &mut self.diffusion {
+                Some(stage) => stage.join(p, now, &metrics),
+                None => {
+                    let e = EngineError::Unsupported("this engine has no image model".into());
+                    metrics.fail(e.code());
+                    let _ = p.tx.try_send(Event::Failed(e));
+                }
             }
         }
         if points.is_empty() {

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Image -> mesh on the lowpoly dev split: renders every dev mesh from one fixed view (the
+# DiT trainer's evaluation view: azimuth 30, elevation 20, field of view 40, the whole
+# normalized cube in frame, 256 px), runs `meshstream generate` on the picture, and scores the
+# result against the ground truth with `meshstream eval` (DESIGN.md's CD/HD, both in the
+# normalized frame, since an image carries no scale or position).
+# Usage: scripts/evaluate-image.sh [MODEL_DIR] [OUT_DIR] [GUIDANCE] [STEPS]
+# GUIDANCE 0 ignores the image: the unconditional lower bound.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+model=${1:-models/default}
+out=${2:-target/eval-image}
+guidance=${3:-2}
+steps=${4:-50}
+data=../shared/data
+bin="${CARGO_TARGET_DIR:-target}/release/meshstream"
+cargo build --release --quiet --bin meshstream
+
+# sqrt(3) / sin(20 degrees): the distance at which the normalized cube fits a 40-degree view.
+distance=5.0642
+mkdir -p "$out/gt" "$out/views" "$out/pred"
+awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | while read -r f; do
+  name=$(basename "$f" .ply)
+  [ -f "$out/gt/$name.ply" ] || "$bin" convert "$data/lowpoly/$f" "$out/gt/$name.ply" --normalize 2>/dev/null
+  [ -f "$out/views/$name.png" ] || "$bin" render "$data/lowpoly/$f" -o "$out/views/$name.png" \
+    --views 1 --size 256 --azimuth 30 --elevation 20 --fov 40 --distance "$distance" 2>/dev/null
+  RAYON_NUM_THREADS=1 "$bin" generate "$out/views/$name.png" -o "$out/pred/$name.glb" \
+    --model "$model" --guidance "$guidance" --steps "$steps" 2>/dev/null \
+    || echo "no mesh for $name" >&2
+done
+echo "== lowpoly dev split, image -> mesh (guidance $guidance, $steps steps)"
+"$bin" eval --pred "$out/pred" --gt "$out/gt" | tail -n 5
