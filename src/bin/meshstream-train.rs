@@ -7,6 +7,7 @@ use anyhow::{Context, bail};
 use candle_core::DType;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
+use meshstream::mesh::write_mesh_file;
 use meshstream::model::{FaceConfig, parse_device};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
@@ -16,9 +17,11 @@ use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
 use meshstream::train::dit::evaluate::{DitEvalOptions, eval_line as dit_eval_line};
 use meshstream::train::dit::trainer::DitTrainer;
 use meshstream::train::dit::views::ViewConfig;
+use meshstream::train::evaluate::HELD_OUT_PROCEDURAL_SEED;
 use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
+use meshstream::train::procedural::{ProceduralShapes, ShapeKind};
 use meshstream::train::trainer::{TrainConfig, Trainer, eval_line, stop_flag_on_ctrl_c};
 
 /// Train FACE models on your meshes (and on procedural low-poly shapes), export the weights
@@ -45,6 +48,24 @@ enum Command {
         output: PathBuf,
         #[arg(long, value_enum, default_value_t = WeightType::F16)]
         dtype: WeightType,
+    },
+    /// Write procedural low-poly shapes as PLY files, e.g. the held-aside evaluation set
+    /// (the default seed), to score models and baselines on shapes never trained on.
+    Shapes {
+        /// Folder to write NNN-Kind.ply into.
+        #[arg(short, long)]
+        output: PathBuf,
+        #[arg(short = 'n', long, default_value_t = 100)]
+        count: usize,
+        /// The default is the trainers' held-aside seed, which no training stream uses.
+        #[arg(long, default_value_t = HELD_OUT_PROCEDURAL_SEED)]
+        seed: u64,
+        /// Only the simple one-part primitives (box, prism, pyramid, wedge, frustum, cone).
+        #[arg(long)]
+        primitives: bool,
+        /// Most faces per shape.
+        #[arg(long, default_value_t = 400)]
+        max_faces: usize,
     },
     /// Draw the loss and evaluation curves of a run's log.jsonl into a PNG.
     Plot {
@@ -264,6 +285,20 @@ fn main() -> anyhow::Result<()> {
             export(&from, &output, dtype)
                 .with_context(|| format!("exporting {}", from.display()))?;
             eprintln!("exported {} to {}", from.display(), output.display());
+            Ok(())
+        }
+        Command::Shapes { output, count, seed, primitives, max_faces } => {
+            let kinds: &[ShapeKind] = if primitives { &ShapeKind::PRIMITIVES } else { &[] };
+            std::fs::create_dir_all(&output)
+                .with_context(|| format!("creating {}", output.display()))?;
+            for (i, (kind, mesh)) in
+                ProceduralShapes::of_kinds(seed, max_faces, kinds).take(count).enumerate()
+            {
+                let path = output.join(format!("{i:03}-{kind:?}.ply"));
+                write_mesh_file(&mesh, &path, None)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+            eprintln!("wrote {count} shapes (seed {seed}) to {}", output.display());
             Ok(())
         }
         Command::Plot { log, output } => {
