@@ -7,13 +7,18 @@ use serde::{Deserialize, Serialize};
 use crate::mesh::Mesh;
 use crate::mesh::transform::{Mat3, mat_mul, rotation, rotation_from_quaternion, scaling};
 
+/// The vertical axis: y, as in glTF and in the low-poly data set (whose meshes stand on
+/// y = 0); procedural shapes are built the same way.
+pub const UP: usize = 1;
+
 /// Which rotations augmentation draws from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Rotation {
     /// No rotation.
     None,
-    /// Any angle about the vertical (z) axis: artist meshes mostly stand upright.
+    /// Any angle about the vertical axis ([`UP`]), and flips of the horizontal axes only:
+    /// artist meshes mostly stand upright, and stay so.
     Upright,
     /// One of the 24 rotations of the cube: keeps axis-aligned faces axis-aligned.
     RightAngles,
@@ -24,7 +29,8 @@ pub enum Rotation {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct AugmentConfig {
     pub rotation: Rotation,
-    /// Probability of mirroring along each axis, drawn independently per axis.
+    /// Probability of mirroring along each axis, drawn independently per axis (not the
+    /// vertical one with [`Rotation::Upright`]).
     pub flip_probability: f32,
     /// Each axis is scaled by a factor drawn uniformly from `[1 - s, 1 + s]`.
     pub scale_jitter: f32,
@@ -47,7 +53,9 @@ pub fn random_transform(cfg: &AugmentConfig, rng: &mut impl Rng) -> Mat3 {
     let rot = match cfg.rotation {
         Rotation::None => crate::mesh::transform::IDENTITY,
         Rotation::Upright => {
-            rotation([0.0, 0.0, 1.0], rng.random_range(0.0..std::f32::consts::TAU))
+            let mut axis = [0.0; 3];
+            axis[UP] = 1.0;
+            rotation(axis, rng.random_range(0.0..std::f32::consts::TAU))
         }
         Rotation::RightAngles => right_angle_rotation(rng.random_range(0..24)),
         Rotation::Full => {
@@ -55,8 +63,10 @@ pub fn random_transform(cfg: &AugmentConfig, rng: &mut impl Rng) -> Mat3 {
         }
     };
     let s = cfg.scale_jitter.clamp(0.0, 0.9);
-    let factors: [f32; 3] = std::array::from_fn(|_| {
-        let flip = if rng.random::<f32>() < cfg.flip_probability { -1.0 } else { 1.0 };
+    let keep_up = cfg.rotation == Rotation::Upright;
+    let factors: [f32; 3] = std::array::from_fn(|axis| {
+        let flipped = rng.random::<f32>() < cfg.flip_probability && !(keep_up && axis == UP);
+        let flip = if flipped { -1.0 } else { 1.0 };
         let scale = if s > 0.0 { rng.random_range(1.0 - s..=1.0 + s) } else { 1.0 };
         flip * scale
     });
@@ -111,5 +121,19 @@ mod tests {
         let a = random_transform(&AugmentConfig::default(), &mut rng);
         let b = random_transform(&AugmentConfig::default(), &mut rng);
         assert_ne!(a, b);
+    }
+
+    #[test]
+    fn upright_keeps_up_pointing_up() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let cfg = AugmentConfig { flip_probability: 1.0, ..AugmentConfig::default() };
+        let mut up = [0.0; 3];
+        up[UP] = 1.0;
+        for _ in 0..50 {
+            let m = random_transform(&cfg, &mut rng);
+            let v = crate::mesh::transform::mat_vec(&m, up);
+            assert!(v[UP] >= 0.75 - 1e-5, "{v:?}");
+            assert!(v.iter().enumerate().all(|(i, c)| i == UP || c.abs() < 1e-5), "{v:?}");
+        }
     }
 }

@@ -105,8 +105,15 @@ impl Iterator for ProceduralShapes {
     }
 }
 
-/// One random shape of a kind.
+/// One random shape of a kind, standing on the data's vertical axis (y, see
+/// [`super::augment::UP`]).
 pub fn shape(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
+    // Built with z up (profiles are drawn in xy and extruded along z), then turned so that
+    // z goes to y: -90 degrees about x.
+    z_up(kind, rng).transformed(&rotation([1.0, 0.0, 0.0], -std::f32::consts::FRAC_PI_2), [0.0; 3])
+}
+
+fn z_up(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
     match kind {
         ShapeKind::Box => cuboid([
             rng.random_range(0.2..1.0),
@@ -348,6 +355,21 @@ mod tests {
             assert!(mesh.area() > 0.0, "{kind:?}");
         }
         assert_eq!(seen.len(), ShapeKind::ALL.len(), "200 draws should cover every kind");
+    }
+
+    #[test]
+    fn shapes_stand_on_the_vertical_axis() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for _ in 0..10 {
+            // A cone's apex is its only highest vertex, above the middle of its base.
+            let cone = shape(ShapeKind::Cone, &mut rng);
+            let up = super::super::augment::UP;
+            let top = cone.vertices.iter().map(|v| v[up]).fold(f32::MIN, f32::max);
+            let apex: Vec<_> = cone.vertices.iter().filter(|v| v[up] > top - 1e-4).collect();
+            assert_eq!(apex.len(), 1, "{apex:?}");
+            let bottom = cone.vertices.iter().map(|v| v[up]).fold(f32::MAX, f32::min);
+            assert!(top - bottom > 0.29, "height {}", top - bottom);
+        }
     }
 
     #[test]
