@@ -87,11 +87,17 @@ impl Engine {
         let levels = u16::try_from(model_config.quant_levels)
             .map_err(|_| EngineError::Model("quantization levels out of range".into()))?;
         let quantizer = Quantizer::new(levels).map_err(|e| EngineError::Model(e.to_string()))?;
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(config.threads())
-            .thread_name(|i| format!("engine-decode-{i}"))
-            .build()
-            .map_err(|e| EngineError::Model(format!("cannot start the decode threads: {e}")))?;
+        let pool = |threads: usize, name: &'static str| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .thread_name(move |i| format!("{name}-{i}"))
+                .build()
+                .map_err(|e| EngineError::Model(format!("cannot start the decode threads: {e}")))
+        };
+        let pools = scheduler::Pools {
+            wide: pool(config.threads(), "engine-decode")?,
+            single: pool(1, "engine-decode-single")?,
+        };
         let shared = Arc::new(Shared {
             queue: Mutex::new(QueueState {
                 waiting: VecDeque::new(),
@@ -103,7 +109,7 @@ impl Engine {
             config,
             metrics,
         });
-        let scheduler = Scheduler::new(model, diffusion, quantizer, Arc::clone(&shared), pool);
+        let scheduler = Scheduler::new(model, diffusion, quantizer, Arc::clone(&shared), pools);
         let thread = std::thread::Builder::new()
             .name("engine-scheduler".into())
             .spawn(move || scheduler.run())

@@ -98,11 +98,21 @@ impl Active {
     }
 }
 
+/// Where model work runs. candle's matmuls spread over the threads of the pool they run in,
+/// which costs more than it saves for a few rows: a batch too small to split into parts runs
+/// on one thread (about twice as fast for one sequence, see `bench decode`).
+pub(super) struct Pools {
+    /// One thread per core (or `decode_threads`): parts of the batch in parallel, encoding,
+    /// diffusion.
+    pub wide: rayon::ThreadPool,
+    pub single: rayon::ThreadPool,
+}
+
 pub(super) struct Scheduler {
     model: FaceModel,
     quantizer: Quantizer,
     shared: Arc<Shared>,
-    pool: rayon::ThreadPool,
+    pools: Pools,
     running: Vec<Active>,
     /// Image requests before decoding; `None` when the engine has no image model.
     diffusion: Option<DiffusionStage>,
@@ -114,10 +124,10 @@ impl Scheduler {
         diffusion: Option<DiffusionModel>,
         quantizer: Quantizer,
         shared: Arc<Shared>,
-        pool: rayon::ThreadPool,
+        pools: Pools,
     ) -> Self {
         let diffusion = diffusion.map(DiffusionStage::new);
-        Self { model, quantizer, shared, pool, running: Vec::new(), diffusion }
+        Self { model, quantizer, shared, pools, running: Vec::new(), diffusion }
     }
 
     pub fn run(mut self) {
@@ -256,7 +266,7 @@ impl Scheduler {
                 Conditioning::Image(_) => None,
             })
             .collect();
-        let latents = self.pool.install(|| encode_batch(&self.model, &clouds));
+        let latents = self.pools.wide.install(|| encode_batch(&self.model, &clouds));
         let prepare = now.elapsed();
         for (i, p) in points.into_iter().enumerate() {
             let latents = latents.as_ref().map_err(Clone::clone).and_then(|l| Ok(l.get(i)?));
@@ -275,7 +285,7 @@ impl Scheduler {
             return;
         }
         let metrics = Arc::clone(&self.shared.metrics);
-        let ready = self.pool.install(|| stage.step(&metrics));
+        let ready = self.pools.wide.install(|| stage.step(&metrics));
         for s in ready {
             self.begin_decoding(s.pending, Ok(s.latents), s.queued, s.prepare);
         }
@@ -344,10 +354,11 @@ impl Scheduler {
             return;
         }
         metrics.batch_size.observe(rows.len() as f64);
-        let threads = self.pool.current_num_threads();
+        let threads = self.pools.wide.current_num_threads();
         let part = rows.len().div_ceil(threads).max(MIN_ROWS_PER_THREAD);
         let model = &self.model;
-        let results: Vec<_> = self.pool.install(|| {
+        let pool = if rows.len() <= part { &self.pools.single } else { &self.pools.wide };
+        let results: Vec<_> = pool.install(|| {
             rows.par_chunks_mut(part)
                 .map(|part| {
                     let mut gens: Vec<&mut Generation> =
