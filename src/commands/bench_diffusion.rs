@@ -19,6 +19,8 @@ use meshstream::model::{SamplingParams, checkpoint, parse_device};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use meshstream::server::ImageServeConfig;
+
 use super::{image_model_dir, load_image_model};
 
 #[derive(Args)]
@@ -36,7 +38,7 @@ pub struct DiffusionBenchArgs {
     #[arg(long, default_value_t = 50)]
     steps: usize,
     /// Guidance scale of the image requests.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = ImageServeConfig::default().guidance)]
     guidance: f32,
     /// Face budget of each image request.
     #[arg(long, default_value_t = 200)]
@@ -138,8 +140,21 @@ fn test_image(size: usize) -> anyhow::Result<PreparedImage> {
     Ok(decode_image(png.get_ref(), &ImageOptions::new(side))?)
 }
 
-/// Mean time of one Euler step for a batch of `b` images.
+/// Mean time of one Euler step for a batch of `b` images, run inside a thread pool as the
+/// engine runs it (calls from outside a pool pay rayon's cross-thread hand-off on every op).
 fn time_step(
+    model: &DiffusionModel,
+    image: &PreparedImage,
+    b: usize,
+    guidance: f32,
+    seconds: f64,
+    device: &Device,
+) -> anyhow::Result<Duration> {
+    let pool = rayon::ThreadPoolBuilder::new().build()?;
+    pool.install(|| time_step_here(model, image, b, guidance, seconds, device))
+}
+
+fn time_step_here(
     model: &DiffusionModel,
     image: &PreparedImage,
     b: usize,
