@@ -142,3 +142,28 @@ fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("/no/model"));
 }
+
+#[test]
+fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
+    let dir = tempfile::tempdir().unwrap();
+    let picture = dir.path().join("cube.png");
+    let out = dir.path().join("out.obj");
+    let cube = dir.path().join("cube.obj");
+    write_mesh_file(&cuboid([1.0, 1.0, 1.0]), &cube, None).unwrap();
+    let o = meshstream(&["render", path(&cube), "-o", path(&picture), "--views", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
+    let args = ["generate", path(&picture), "-o", path(&out), "--model", model, "--steps", "3"];
+    let o = meshstream(&[&args[..], &["--max-faces", "40"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mesh = read_mesh_file(&out, &ReadLimits::default()).unwrap();
+    assert!(!mesh.faces.is_empty() && mesh.faces.len() <= 40);
+    let (lo, hi) = mesh.bounds().unwrap();
+    assert!(lo.iter().chain(&hi).all(|c| c.abs() <= 1.0 + 1e-4), "not in [-1, 1]: {lo:?} {hi:?}");
+
+    // Not a picture: a clear error, no panic.
+    let o = meshstream(&["generate", path(&cube), "-o", path(&out), "--model", model]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("decoding") && !err.contains("panicked"), "{err}");
+}
