@@ -148,6 +148,9 @@ async fn a_png_becomes_a_mesh_and_streams_progress_then_faces() {
     let info: Value =
         client.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["image_model"]["config"]["num_latents"], 128);
+    let api: Value =
+        client.get(server.url("/openapi.json")).send().await.unwrap().json().await.unwrap();
+    assert!(api["paths"]["/generate"]["post"].is_object(), "{}", api["paths"]);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
