@@ -12,6 +12,7 @@ pub mod log;
 pub mod optim;
 pub mod plot;
 pub mod procedural;
+pub mod run_loop;
 pub mod trainer;
 
 pub use error::TrainError;

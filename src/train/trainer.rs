@@ -8,7 +8,6 @@ use std::time::Instant;
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Var};
 use candle_nn::{VarBuilder, VarMap};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::MetricOptions;
@@ -22,6 +21,7 @@ use super::dataset::{FolderData, load_folder};
 use super::evaluate::{EvalReport, EvalSet, evaluate};
 use super::log::{LogRecord, LogWriter};
 use super::optim::{OptimConfig, Optimizer, clip_grad_norm, default_rule, learning_rate};
+use super::run_loop;
 
 /// Everything that defines a run; saved as `train.json` in the run folder, so `--resume`
 /// continues with exactly the same settings.
@@ -199,106 +199,9 @@ impl Trainer {
         stop_at: Option<u64>,
         progress: bool,
     ) -> Result<RunSummary, TrainError> {
-        let end = stop_at.map_or(self.cfg.steps, |s| s.min(self.cfg.steps));
-        let source = BatchSource::new(self.train_data.clone(), self.cfg.batch.clone());
-        let accumulate = self.cfg.accumulate.max(1) as u64;
-        let prefetch = Prefetcher::spawn(source, self.state.step * accumulate, 4);
-        let bar = progress_bar(self.state.step, self.cfg.steps, progress);
-        let session = Instant::now();
-        let base_elapsed = self.state.elapsed_s;
-        let vars: Vec<Var> = self.varmap.all_vars();
-        let mut last_eval = None;
-        let mut interrupted = false;
-        while self.state.step < end {
-            if stop.load(Ordering::SeqCst) {
-                interrupted = true;
-                break;
-            }
-            let t0 = Instant::now();
-            let mut grads: Option<GradStore> = None;
-            let (mut loss, mut coord_loss, mut positions, mut meshes) = (0.0, 0.0, 0, 0);
-            for _ in 0..accumulate {
-                let batch = prefetch.next_batch().ok_or(TrainError::DataStopped)??;
-                let batch_positions = batch.positions();
-                for group in batch.length_groups(self.cfg.batch.max_padding) {
-                    let examples: Vec<_> =
-                        group.iter().map(|s| super::evaluate::example(s)).collect();
-                    let tensors = TrainBatch::new(&examples, &self.device)?;
-                    let out = self.model.loss(&tensors)?;
-                    // Each group's loss is a mean over its positions; weighted by its share,
-                    // the sum is the mean over the whole step's positions.
-                    let group_positions: usize = group.iter().map(|s| s.faces.len() + 1).sum();
-                    let weight =
-                        group_positions as f64 / batch_positions as f64 / accumulate as f64;
-                    loss += f64::from(out.total.to_scalar::<f32>()?) * weight;
-                    coord_loss += f64::from(out.coords.to_scalar::<f32>()?) * weight;
-                    let step_grads = (out.total * weight)?.backward()?;
-                    grads = Some(match grads {
-                        None => step_grads,
-                        Some(mut acc) => {
-                            add_grads(&mut acc, &step_grads, &vars)?;
-                            acc
-                        }
-                    });
-                }
-                positions += batch_positions;
-                meshes += batch.samples.len();
-            }
-            let mut grads = grads.ok_or(TrainError::DataStopped)?;
-            let grad_norm = clip_grad_norm(&mut grads, &vars, self.cfg.grad_clip)?;
-            let lr = learning_rate(
-                self.state.step,
-                self.cfg.warmup_steps,
-                self.cfg.steps,
-                self.cfg.lr,
-                self.cfg.min_lr_ratio,
-            );
-            if !loss.is_finite() {
-                return Err(TrainError::Config(format!(
-                    "the loss became {loss} at step {}: lower the learning rate",
-                    self.state.step
-                )));
-            }
-            self.optimizer.step(&grads, lr)?;
-            self.state.step += 1;
-            self.state.elapsed_s = base_elapsed + session.elapsed().as_secs_f64();
-            let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
-            self.log.write(&LogRecord::Step {
-                step: self.state.step,
-                loss,
-                coord_loss,
-                lr,
-                grad_norm,
-                positions,
-                meshes,
-                faces_per_s,
-                elapsed_s: self.state.elapsed_s,
-            })?;
-            bar.set_position(self.state.step);
-            bar.set_message(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"));
-            let step = self.state.step;
-            if step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end {
-                let report = bar.suspend(|| self.evaluate_and_keep_best())?;
-                bar.println(eval_line(step, &report));
-                last_eval = Some((step, report));
-            }
-            if step.is_multiple_of(self.cfg.checkpoint_every.max(1)) {
-                self.save_checkpoint()?;
-            }
-        }
-        self.save_checkpoint()?;
-        bar.finish_and_clear();
+        let outcome = run_loop::run(self, stop, stop_at, progress)?;
+        let (interrupted, last_eval) = (outcome.interrupted, outcome.last_eval);
         Ok(RunSummary { state: self.state.clone(), interrupted, last_eval })
-    }
-
-    fn save_checkpoint(&self) -> Result<(), TrainError> {
-        checkpoint::save(
-            &self.dir.checkpoint(),
-            &self.cfg.model,
-            &self.varmap,
-            &self.optimizer,
-            &self.state,
-        )
     }
 
     /// Evaluates the current weights, logs the report, and exports them to `best/` when
@@ -341,18 +244,121 @@ fn add_grads(acc: &mut GradStore, more: &GradStore, vars: &[Var]) -> Result<(), 
     Ok(())
 }
 
-pub(crate) fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
-    if !visible {
-        return ProgressBar::hidden();
+/// What one `ae` session keeps between steps.
+pub struct AeSession {
+    prefetch: Prefetcher,
+    vars: Vec<Var>,
+    clock: Instant,
+    base_elapsed: f64,
+}
+
+impl run_loop::Steps for Trainer {
+    type Session = AeSession;
+    type Report = EvalReport;
+
+    fn step_index(&self) -> u64 {
+        self.state.step
     }
-    let bar = ProgressBar::new(total);
-    if let Ok(style) = ProgressStyle::with_template(
-        "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
-    ) {
-        bar.set_style(style.progress_chars("=> "));
+
+    fn cadence(&self) -> run_loop::Cadence {
+        run_loop::Cadence {
+            steps: self.cfg.steps,
+            eval_every: self.cfg.eval_every,
+            checkpoint_every: self.cfg.checkpoint_every,
+        }
     }
-    bar.set_position(start);
-    bar
+
+    fn begin(&mut self) -> Result<AeSession, TrainError> {
+        let source = BatchSource::new(self.train_data.clone(), self.cfg.batch.clone());
+        let accumulate = self.cfg.accumulate.max(1) as u64;
+        Ok(AeSession {
+            prefetch: Prefetcher::spawn(source, self.state.step * accumulate, 4),
+            vars: self.varmap.all_vars(),
+            clock: Instant::now(),
+            base_elapsed: self.state.elapsed_s,
+        })
+    }
+
+    fn train_step(&mut self, session: &mut AeSession) -> Result<String, TrainError> {
+        let accumulate = self.cfg.accumulate.max(1) as u64;
+        let t0 = Instant::now();
+        let mut grads: Option<GradStore> = None;
+        let (mut loss, mut coord_loss, mut positions, mut meshes) = (0.0, 0.0, 0, 0);
+        for _ in 0..accumulate {
+            let batch = session.prefetch.next_batch().ok_or(TrainError::DataStopped)??;
+            let batch_positions = batch.positions();
+            for group in batch.length_groups(self.cfg.batch.max_padding) {
+                let examples: Vec<_> = group.iter().map(|s| super::evaluate::example(s)).collect();
+                let tensors = TrainBatch::new(&examples, &self.device)?;
+                let out = self.model.loss(&tensors)?;
+                // Each group's loss is a mean over its positions; weighted by its share,
+                // the sum is the mean over the whole step's positions.
+                let group_positions: usize = group.iter().map(|s| s.faces.len() + 1).sum();
+                let weight = group_positions as f64 / batch_positions as f64 / accumulate as f64;
+                loss += f64::from(out.total.to_scalar::<f32>()?) * weight;
+                coord_loss += f64::from(out.coords.to_scalar::<f32>()?) * weight;
+                let step_grads = (out.total * weight)?.backward()?;
+                grads = Some(match grads {
+                    None => step_grads,
+                    Some(mut acc) => {
+                        add_grads(&mut acc, &step_grads, &session.vars)?;
+                        acc
+                    }
+                });
+            }
+            positions += batch_positions;
+            meshes += batch.samples.len();
+        }
+        let mut grads = grads.ok_or(TrainError::DataStopped)?;
+        let grad_norm = clip_grad_norm(&mut grads, &session.vars, self.cfg.grad_clip)?;
+        let lr = learning_rate(
+            self.state.step,
+            self.cfg.warmup_steps,
+            self.cfg.steps,
+            self.cfg.lr,
+            self.cfg.min_lr_ratio,
+        );
+        if !loss.is_finite() {
+            return Err(TrainError::Config(format!(
+                "the loss became {loss} at step {}: lower the learning rate",
+                self.state.step
+            )));
+        }
+        self.optimizer.step(&grads, lr)?;
+        self.state.step += 1;
+        self.state.elapsed_s = session.base_elapsed + session.clock.elapsed().as_secs_f64();
+        let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
+        self.log.write(&LogRecord::Step {
+            step: self.state.step,
+            loss,
+            coord_loss,
+            lr,
+            grad_norm,
+            positions,
+            meshes,
+            faces_per_s,
+            elapsed_s: self.state.elapsed_s,
+        })?;
+        Ok(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"))
+    }
+
+    fn evaluate(&mut self) -> Result<Option<EvalReport>, TrainError> {
+        self.evaluate_and_keep_best().map(Some)
+    }
+
+    fn report_line(step: u64, report: &EvalReport) -> String {
+        eval_line(step, report)
+    }
+
+    fn save_checkpoint(&self) -> Result<(), TrainError> {
+        checkpoint::save(
+            &self.dir.checkpoint(),
+            &self.cfg.model,
+            &self.varmap,
+            &self.optimizer,
+            &self.state,
+        )
+    }
 }
 
 pub fn eval_line(step: u64, r: &EvalReport) -> String {

@@ -6,7 +6,7 @@
 //! pairs and the flow-matching noise it would have drawn, so no RNG state is saved.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor, Var};
@@ -23,7 +23,7 @@ use super::super::checkpoint::{self, RunDir, TrainState};
 use super::super::dataset::load_folder;
 use super::super::log::{LogRecord, LogWriter};
 use super::super::optim::{Optimizer, Rule, clip_grad_norm, default_rule, learning_rate};
-use super::super::trainer::progress_bar;
+use super::super::run_loop;
 use super::cache::{AutoencoderId, LatentCache};
 use super::evaluate::{DitEvalReport, DitEvalSet, evaluate};
 use super::views::images_tensor;
@@ -252,77 +252,9 @@ impl DitTrainer {
         stop_at: Option<u64>,
         progress: bool,
     ) -> Result<DitRunSummary, TrainError> {
-        let end = stop_at.map_or(self.cfg.steps, |s| s.min(self.cfg.steps));
-        let bar = progress_bar(self.state.step, self.cfg.steps, progress);
-        let session = Instant::now();
-        let base_elapsed = self.state.elapsed_s;
-        let vars: Vec<Var> = self.varmap.all_vars();
-        let mut last_eval = None;
-        let mut interrupted = false;
-        while self.state.step < end {
-            if stop.load(Ordering::SeqCst) {
-                interrupted = true;
-                break;
-            }
-            let t0 = Instant::now();
-            let (latents, images, mut rng) = self.batch(self.state.step)?;
-            let loss_t = self.model.training_loss(&latents, &images, &mut rng)?;
-            let loss = f64::from(loss_t.to_scalar::<f32>()?);
-            if !loss.is_finite() {
-                return Err(TrainError::Config(format!(
-                    "the loss became {loss} at step {}: lower the learning rate",
-                    self.state.step
-                )));
-            }
-            let mut grads = loss_t.backward()?;
-            let grad_norm = clip_grad_norm(&mut grads, &vars, self.cfg.grad_clip)?;
-            let lr = learning_rate(
-                self.state.step,
-                self.cfg.warmup_steps,
-                self.cfg.steps,
-                self.cfg.lr,
-                self.cfg.min_lr_ratio,
-            );
-            self.optimizer.step(&grads, lr)?;
-            self.state.step += 1;
-            self.state.elapsed_s = base_elapsed + session.elapsed().as_secs_f64();
-            let samples = latents.dim(0)?;
-            let samples_per_s = samples as f64 / t0.elapsed().as_secs_f64();
-            self.log.write(&LogRecord::DitStep {
-                step: self.state.step,
-                loss,
-                lr,
-                grad_norm,
-                samples,
-                samples_per_s,
-                elapsed_s: self.state.elapsed_s,
-            })?;
-            bar.set_position(self.state.step);
-            bar.set_message(format!("loss {loss:.4}  {samples_per_s:.1} samples/s"));
-            let step = self.state.step;
-            if (step.is_multiple_of(self.cfg.eval_every.max(1)) || step == end)
-                && let Some(report) = bar.suspend(|| self.evaluate_and_keep_best())?
-            {
-                bar.println(super::evaluate::eval_line(step, &report));
-                last_eval = Some((step, report));
-            }
-            if step.is_multiple_of(self.cfg.checkpoint_every.max(1)) {
-                self.save_checkpoint()?;
-            }
-        }
-        self.save_checkpoint()?;
-        bar.finish_and_clear();
+        let outcome = run_loop::run(self, stop, stop_at, progress)?;
+        let (interrupted, last_eval) = (outcome.interrupted, outcome.last_eval);
         Ok(DitRunSummary { state: self.state.clone(), interrupted, last_eval })
-    }
-
-    fn save_checkpoint(&self) -> Result<(), TrainError> {
-        checkpoint::save(
-            &self.dir.checkpoint(),
-            &self.cfg.model,
-            &self.varmap,
-            &self.optimizer,
-            &self.state,
-        )
     }
 
     /// Evaluates the current weights (none when the evaluation set is empty), logs the report,
@@ -350,6 +282,93 @@ impl DitTrainer {
             dit_checkpoint::save(&self.dir.best(), &self.cfg.model, &self.varmap)?;
         }
         Ok(Some(report))
+    }
+}
+
+/// What one `dit` session keeps between steps.
+pub struct DitSession {
+    vars: Vec<Var>,
+    clock: Instant,
+    base_elapsed: f64,
+}
+
+impl run_loop::Steps for DitTrainer {
+    type Session = DitSession;
+    type Report = DitEvalReport;
+
+    fn step_index(&self) -> u64 {
+        self.state.step
+    }
+
+    fn cadence(&self) -> run_loop::Cadence {
+        run_loop::Cadence {
+            steps: self.cfg.steps,
+            eval_every: self.cfg.eval_every,
+            checkpoint_every: self.cfg.checkpoint_every,
+        }
+    }
+
+    fn begin(&mut self) -> Result<DitSession, TrainError> {
+        Ok(DitSession {
+            vars: self.varmap.all_vars(),
+            clock: Instant::now(),
+            base_elapsed: self.state.elapsed_s,
+        })
+    }
+
+    fn train_step(&mut self, session: &mut DitSession) -> Result<String, TrainError> {
+        let t0 = Instant::now();
+        let (latents, images, mut rng) = self.batch(self.state.step)?;
+        let loss_t = self.model.training_loss(&latents, &images, &mut rng)?;
+        let loss = f64::from(loss_t.to_scalar::<f32>()?);
+        if !loss.is_finite() {
+            return Err(TrainError::Config(format!(
+                "the loss became {loss} at step {}: lower the learning rate",
+                self.state.step
+            )));
+        }
+        let mut grads = loss_t.backward()?;
+        let grad_norm = clip_grad_norm(&mut grads, &session.vars, self.cfg.grad_clip)?;
+        let lr = learning_rate(
+            self.state.step,
+            self.cfg.warmup_steps,
+            self.cfg.steps,
+            self.cfg.lr,
+            self.cfg.min_lr_ratio,
+        );
+        self.optimizer.step(&grads, lr)?;
+        self.state.step += 1;
+        self.state.elapsed_s = session.base_elapsed + session.clock.elapsed().as_secs_f64();
+        let samples = latents.dim(0)?;
+        let samples_per_s = samples as f64 / t0.elapsed().as_secs_f64();
+        self.log.write(&LogRecord::DitStep {
+            step: self.state.step,
+            loss,
+            lr,
+            grad_norm,
+            samples,
+            samples_per_s,
+            elapsed_s: self.state.elapsed_s,
+        })?;
+        Ok(format!("loss {loss:.4}  {samples_per_s:.1} samples/s"))
+    }
+
+    fn evaluate(&mut self) -> Result<Option<DitEvalReport>, TrainError> {
+        self.evaluate_and_keep_best()
+    }
+
+    fn report_line(step: u64, report: &DitEvalReport) -> String {
+        super::evaluate::eval_line(step, report)
+    }
+
+    fn save_checkpoint(&self) -> Result<(), TrainError> {
+        checkpoint::save(
+            &self.dir.checkpoint(),
+            &self.cfg.model,
+            &self.varmap,
+            &self.optimizer,
+            &self.state,
+        )
     }
 }
 

@@ -1,0 +1,97 @@
+//! The loop every trainer shares: optimizer steps until the end of the schedule, a stop
+//! request (Ctrl-C) or `--stop-at`; a progress bar; evaluations every `eval_every` steps and at
+//! the end; checkpoints every `checkpoint_every` steps and on the way out. What a step and an
+//! evaluation are is the trainer's ([`Steps`]).
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::TrainError;
+
+/// When to stop, evaluate and checkpoint.
+#[derive(Debug, Clone, Copy)]
+pub struct Cadence {
+    /// The schedule's length (the progress bar's total).
+    pub steps: u64,
+    pub eval_every: u64,
+    pub checkpoint_every: u64,
+}
+
+/// A trainer, as the loop sees it.
+pub trait Steps {
+    /// What is prepared once per session (a data prefetcher, a clock, the variables).
+    type Session;
+    type Report;
+
+    /// Steps taken so far.
+    fn step_index(&self) -> u64;
+    fn cadence(&self) -> Cadence;
+    fn begin(&mut self) -> Result<Self::Session, TrainError>;
+    /// One optimizer step (logged); returns the progress bar's message.
+    fn train_step(&mut self, session: &mut Self::Session) -> Result<String, TrainError>;
+    /// Evaluates and logs (and keeps the best weights); `None` when there is nothing to
+    /// evaluate on.
+    fn evaluate(&mut self) -> Result<Option<Self::Report>, TrainError>;
+    fn report_line(step: u64, report: &Self::Report) -> String;
+    fn save_checkpoint(&self) -> Result<(), TrainError>;
+}
+
+/// How a session ended.
+pub struct Outcome<R> {
+    /// Stopped by a stop request rather than the schedule or `stop_at`.
+    pub interrupted: bool,
+    /// The last evaluation, with its step.
+    pub last_eval: Option<(u64, R)>,
+}
+
+/// Trains until the configured step count, `stop_at` (checkpointed, to be resumed; the
+/// schedule still spans the configured count), or a stop request.
+pub fn run<T: Steps>(
+    trainer: &mut T,
+    stop: &AtomicBool,
+    stop_at: Option<u64>,
+    progress: bool,
+) -> Result<Outcome<T::Report>, TrainError> {
+    let cadence = trainer.cadence();
+    let end = stop_at.map_or(cadence.steps, |s| s.min(cadence.steps));
+    let bar = progress_bar(trainer.step_index(), cadence.steps, progress);
+    let mut session = trainer.begin()?;
+    let mut outcome = Outcome { interrupted: false, last_eval: None };
+    while trainer.step_index() < end {
+        if stop.load(Ordering::SeqCst) {
+            outcome.interrupted = true;
+            break;
+        }
+        let message = trainer.train_step(&mut session)?;
+        let step = trainer.step_index();
+        bar.set_position(step);
+        bar.set_message(message);
+        if (step.is_multiple_of(cadence.eval_every.max(1)) || step == end)
+            && let Some(report) = bar.suspend(|| trainer.evaluate())?
+        {
+            bar.println(T::report_line(step, &report));
+            outcome.last_eval = Some((step, report));
+        }
+        if step.is_multiple_of(cadence.checkpoint_every.max(1)) {
+            trainer.save_checkpoint()?;
+        }
+    }
+    trainer.save_checkpoint()?;
+    bar.finish_and_clear();
+    Ok(outcome)
+}
+
+fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
+    if !visible {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    if let Ok(style) = ProgressStyle::with_template(
+        "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
+    ) {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_position(start);
+    bar
+}
