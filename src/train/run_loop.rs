@@ -4,10 +4,15 @@
 //! evaluation are is the trainer's ([`Steps`]).
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
 
+use candle_core::Var;
+use candle_core::backprop::GradStore;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::TrainError;
+use super::checkpoint::TrainState;
+use super::optim::{Optimizer, clip_grad_norm, learning_rate};
 
 /// When to stop, evaluate and checkpoint.
 #[derive(Debug, Clone, Copy)]
@@ -35,6 +40,53 @@ pub trait Steps {
     fn evaluate(&mut self) -> Result<Option<Self::Report>, TrainError>;
     fn report_line(step: u64, report: &Self::Report) -> String;
     fn save_checkpoint(&self) -> Result<(), TrainError>;
+}
+
+/// A session's trainable variables, and its clock (added to the time of earlier sessions).
+pub struct SessionClock {
+    pub vars: Vec<Var>,
+    started: Instant,
+    base_elapsed: f64,
+}
+
+impl SessionClock {
+    pub fn new(vars: Vec<Var>, state: &TrainState) -> Self {
+        Self { vars, started: Instant::now(), base_elapsed: state.elapsed_s }
+    }
+}
+
+/// The learning-rate schedule (warm-up, then cosine) and the gradient clipping of a run.
+pub struct Schedule {
+    pub steps: u64,
+    pub warmup_steps: u64,
+    pub lr: f64,
+    pub min_lr_ratio: f64,
+    pub grad_clip: f64,
+}
+
+/// The end of every optimizer step: refuse a non-finite loss, clip, take the scheduled
+/// learning rate, update, and count the step and the time. Returns (lr, gradient norm).
+pub fn update(
+    loss: f64,
+    mut grads: GradStore,
+    optimizer: &mut Optimizer,
+    state: &mut TrainState,
+    schedule: &Schedule,
+    clock: &SessionClock,
+) -> Result<(f64, f64), TrainError> {
+    if !loss.is_finite() {
+        return Err(TrainError::Config(format!(
+            "the loss became {loss} at step {}: lower the learning rate",
+            state.step
+        )));
+    }
+    let grad_norm = clip_grad_norm(&mut grads, &clock.vars, schedule.grad_clip)?;
+    let s = schedule;
+    let lr = learning_rate(state.step, s.warmup_steps, s.steps, s.lr, s.min_lr_ratio);
+    optimizer.step(&grads, lr)?;
+    state.step += 1;
+    state.elapsed_s = clock.base_elapsed + clock.started.elapsed().as_secs_f64();
+    Ok((lr, grad_norm))
 }
 
 /// How a session ended.

@@ -20,7 +20,7 @@ use super::checkpoint::{self, RunDir, TrainState};
 use super::dataset::{FolderData, load_folder};
 use super::evaluate::{EvalReport, EvalSet, evaluate};
 use super::log::{LogRecord, LogWriter};
-use super::optim::{OptimConfig, Optimizer, clip_grad_norm, default_rule, learning_rate};
+use super::optim::{OptimConfig, Optimizer, default_rule};
 use super::run_loop;
 
 /// Everything that defines a run; saved as `train.json` in the run folder, so `--resume`
@@ -247,9 +247,7 @@ fn add_grads(acc: &mut GradStore, more: &GradStore, vars: &[Var]) -> Result<(), 
 /// What one `ae` session keeps between steps.
 pub struct AeSession {
     prefetch: Prefetcher,
-    vars: Vec<Var>,
-    clock: Instant,
-    base_elapsed: f64,
+    clock: run_loop::SessionClock,
 }
 
 impl run_loop::Steps for Trainer {
@@ -273,9 +271,7 @@ impl run_loop::Steps for Trainer {
         let accumulate = self.cfg.accumulate.max(1) as u64;
         Ok(AeSession {
             prefetch: Prefetcher::spawn(source, self.state.step * accumulate, 4),
-            vars: self.varmap.all_vars(),
-            clock: Instant::now(),
-            base_elapsed: self.state.elapsed_s,
+            clock: run_loop::SessionClock::new(self.varmap.all_vars(), &self.state),
         })
     }
 
@@ -301,7 +297,7 @@ impl run_loop::Steps for Trainer {
                 grads = Some(match grads {
                     None => step_grads,
                     Some(mut acc) => {
-                        add_grads(&mut acc, &step_grads, &session.vars)?;
+                        add_grads(&mut acc, &step_grads, &session.clock.vars)?;
                         acc
                     }
                 });
@@ -309,24 +305,22 @@ impl run_loop::Steps for Trainer {
             positions += batch_positions;
             meshes += batch.samples.len();
         }
-        let mut grads = grads.ok_or(TrainError::DataStopped)?;
-        let grad_norm = clip_grad_norm(&mut grads, &session.vars, self.cfg.grad_clip)?;
-        let lr = learning_rate(
-            self.state.step,
-            self.cfg.warmup_steps,
-            self.cfg.steps,
-            self.cfg.lr,
-            self.cfg.min_lr_ratio,
-        );
-        if !loss.is_finite() {
-            return Err(TrainError::Config(format!(
-                "the loss became {loss} at step {}: lower the learning rate",
-                self.state.step
-            )));
-        }
-        self.optimizer.step(&grads, lr)?;
-        self.state.step += 1;
-        self.state.elapsed_s = session.base_elapsed + session.clock.elapsed().as_secs_f64();
+        let grads = grads.ok_or(TrainError::DataStopped)?;
+        let schedule = run_loop::Schedule {
+            steps: self.cfg.steps,
+            warmup_steps: self.cfg.warmup_steps,
+            lr: self.cfg.lr,
+            min_lr_ratio: self.cfg.min_lr_ratio,
+            grad_clip: self.cfg.grad_clip,
+        };
+        let (lr, grad_norm) = run_loop::update(
+            loss,
+            grads,
+            &mut self.optimizer,
+            &mut self.state,
+            &schedule,
+            &session.clock,
+        )?;
         let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
         self.log.write(&LogRecord::Step {
             step: self.state.step,

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -22,7 +22,7 @@ use super::super::TrainError;
 use super::super::checkpoint::{self, RunDir, TrainState};
 use super::super::dataset::load_folder;
 use super::super::log::{LogRecord, LogWriter};
-use super::super::optim::{Optimizer, Rule, clip_grad_norm, default_rule, learning_rate};
+use super::super::optim::{Optimizer, Rule, default_rule};
 use super::super::run_loop;
 use super::cache::{AutoencoderId, LatentCache};
 use super::evaluate::{DitEvalReport, DitEvalSet, evaluate};
@@ -287,9 +287,7 @@ impl DitTrainer {
 
 /// What one `dit` session keeps between steps.
 pub struct DitSession {
-    vars: Vec<Var>,
-    clock: Instant,
-    base_elapsed: f64,
+    clock: run_loop::SessionClock,
 }
 
 impl run_loop::Steps for DitTrainer {
@@ -309,11 +307,7 @@ impl run_loop::Steps for DitTrainer {
     }
 
     fn begin(&mut self) -> Result<DitSession, TrainError> {
-        Ok(DitSession {
-            vars: self.varmap.all_vars(),
-            clock: Instant::now(),
-            base_elapsed: self.state.elapsed_s,
-        })
+        Ok(DitSession { clock: run_loop::SessionClock::new(self.varmap.all_vars(), &self.state) })
     }
 
     fn train_step(&mut self, session: &mut DitSession) -> Result<String, TrainError> {
@@ -321,24 +315,22 @@ impl run_loop::Steps for DitTrainer {
         let (latents, images, mut rng) = self.batch(self.state.step)?;
         let loss_t = self.model.training_loss(&latents, &images, &mut rng)?;
         let loss = f64::from(loss_t.to_scalar::<f32>()?);
-        if !loss.is_finite() {
-            return Err(TrainError::Config(format!(
-                "the loss became {loss} at step {}: lower the learning rate",
-                self.state.step
-            )));
-        }
-        let mut grads = loss_t.backward()?;
-        let grad_norm = clip_grad_norm(&mut grads, &session.vars, self.cfg.grad_clip)?;
-        let lr = learning_rate(
-            self.state.step,
-            self.cfg.warmup_steps,
-            self.cfg.steps,
-            self.cfg.lr,
-            self.cfg.min_lr_ratio,
-        );
-        self.optimizer.step(&grads, lr)?;
-        self.state.step += 1;
-        self.state.elapsed_s = session.base_elapsed + session.clock.elapsed().as_secs_f64();
+        let grads = loss_t.backward()?;
+        let schedule = run_loop::Schedule {
+            steps: self.cfg.steps,
+            warmup_steps: self.cfg.warmup_steps,
+            lr: self.cfg.lr,
+            min_lr_ratio: self.cfg.min_lr_ratio,
+            grad_clip: self.cfg.grad_clip,
+        };
+        let (lr, grad_norm) = run_loop::update(
+            loss,
+            grads,
+            &mut self.optimizer,
+            &mut self.state,
+            &schedule,
+            &session.clock,
+        )?;
         let samples = latents.dim(0)?;
         let samples_per_s = samples as f64 / t0.elapsed().as_secs_f64();
         self.log.write(&LogRecord::DitStep {
