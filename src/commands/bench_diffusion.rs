@@ -151,29 +151,20 @@ fn time_step(
     device: &Device,
 ) -> anyhow::Result<Duration> {
     let pool = rayon::ThreadPoolBuilder::new().build()?;
-    pool.install(|| time_step_here(model, image, b, guidance, seconds, device))
-}
-
-fn time_step_here(
-    model: &DiffusionModel,
-    image: &PreparedImage,
-    b: usize,
-    guidance: f32,
-    seconds: f64,
-    device: &Device,
-) -> anyhow::Result<Duration> {
-    let images = images_to_tensor(&vec![image.clone(); b], device)?;
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    // Enough steps that a run never finishes while timing.
-    let mut run = model.start(&images, vec![guidance; b], 1 << 20, &mut rng)?;
-    model.step(&mut run)?; // warm-up
-    let start = Instant::now();
-    let mut n = 0u32;
-    while n == 0 || start.elapsed().as_secs_f64() < seconds {
-        model.step(&mut run)?;
-        n += 1;
-    }
-    Ok(start.elapsed() / n)
+    pool.install(|| {
+        let images = images_to_tensor(&vec![image.clone(); b], device)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        // Enough steps that a run never finishes while timing.
+        let mut run = model.start(&images, vec![guidance; b], 1 << 20, &mut rng)?;
+        model.step(&mut run)?; // warm-up
+        let start = Instant::now();
+        let mut n = 0u32;
+        while n == 0 || start.elapsed().as_secs_f64() < seconds {
+            model.step(&mut run)?;
+            n += 1;
+        }
+        Ok(start.elapsed() / n)
+    })
 }
 
 /// `b` image requests submitted at once; one table row.
