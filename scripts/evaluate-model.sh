@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # Reconstructs every mesh of the lowpoly dev split and of famous-dev from points sampled on
 # its surface, then scores the results against the ground truth with `meshstream eval`
-# (DESIGN.md's CD/HD). Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR]
+# (DESIGN.md's CD/HD). Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...],
+# e.g. --face-beam 1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}
 out=${2:-target/eval}
+shift $(($# < 2 ? $# : 2))
 data=../shared/data
 bin="${CARGO_TARGET_DIR:-target}/release/meshstream"
 cargo build --release --quiet --bin meshstream
@@ -19,7 +21,7 @@ for gt_dir in "$out/dev-gt" "$data/famous-dev"; do
   pred_dir=$([ "$gt_dir" = "$out/dev-gt" ] && echo "$out/dev-pred" || echo "$out/famous-pred")
   for f in "$gt_dir"/*.ply; do
     name=$(basename "$f" .ply)
-    RAYON_NUM_THREADS=1 "$bin" reconstruct "$f" -o "$pred_dir/$name.glb" --model "$model" 2>/dev/null \
+    RAYON_NUM_THREADS=1 "$bin" reconstruct "$f" -o "$pred_dir/$name.glb" --model "$model" "$@" 2>/dev/null \
       || echo "no reconstruction for $name" >&2
   done
 done

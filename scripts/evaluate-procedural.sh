@@ -2,11 +2,12 @@
 # The model against the convex hull on procedural shapes it never trained on (the trainers'
 # held-aside seed): 100 shapes of every kind, and 60 simple primitives. Each method gets the
 # same 1,024 input points per shape; `meshstream eval` scores them (DESIGN.md's CD/HD).
-# Usage: scripts/evaluate-procedural.sh [MODEL_DIR] [OUT_DIR]
+# Usage: scripts/evaluate-procedural.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}
 out=${2:-target/eval-procedural}
+shift $(($# < 2 ? $# : 2))
 target="${CARGO_TARGET_DIR:-target}/release"
 cargo build --release --quiet --bin meshstream --bin meshstream-train
 
@@ -17,7 +18,7 @@ for set in all primitives; do
   for f in "$out/$set/gt"/*.ply; do
     name=$(basename "$f" .ply)
     RAYON_NUM_THREADS=1 "$target/meshstream" reconstruct "$f" -o "$out/$set/model/$name.glb" \
-      --model "$model" 2>/dev/null || echo "no reconstruction for $name" >&2
+      --model "$model" "$@" 2>/dev/null || echo "no reconstruction for $name" >&2
     "$target/meshstream" baseline --method hull "$f" -o "$out/$set/hull/$name.glb" 2>/dev/null \
       || echo "no hull for $name" >&2
   done

@@ -61,6 +61,7 @@ fn decode_face(
         // at a dead end, when no canonical face can follow).
         min_faces: faces,
         constrained,
+        ..GenerateOptions::default()
     };
     let mut gens = (0..batch)
         .map(|_| Generation::new(model, latents, options.clone()))

@@ -15,7 +15,7 @@ use meshstream::diffusion::{
 use meshstream::engine::{
     Conditioning, DecodeOptions, Engine, EngineConfig, ImagePrompt, Metrics, Request,
 };
-use meshstream::model::{SamplingParams, checkpoint, parse_device};
+use meshstream::model::{checkpoint, parse_device};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -185,10 +185,7 @@ async fn image_requests(
                     guidance: args.guidance,
                     seed: i as u64,
                 }),
-                options: DecodeOptions {
-                    max_faces: Some(args.max_faces),
-                    sampling: SamplingParams::greedy(),
-                },
+                options: DecodeOptions { max_faces: Some(args.max_faces), ..Default::default() },
                 deadline: None,
             })
         })

@@ -10,7 +10,7 @@ use candle_core::Tensor;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use meshstream::mesh::{Format, Normalization, write_mesh_file};
-use meshstream::model::{FaceModel, GenerateOptions, SamplingParams, generate};
+use meshstream::model::{DEFAULT_FACE_BEAM, FaceModel, GenerateOptions, SamplingParams, generate};
 use meshstream::tokenize::{Quantizer, detokenize};
 
 #[derive(Args)]
@@ -31,6 +31,10 @@ pub struct DecodeArgs {
     pub top_k: Option<usize>,
     #[arg(long)]
     pub top_p: Option<f32>,
+    /// Greedy decoding keeps this many partial faces while it picks each face's coordinates,
+    /// and takes the most likely whole face; 1 picks coordinate by coordinate.
+    #[arg(long, default_value_t = DEFAULT_FACE_BEAM)]
+    pub face_beam: usize,
 }
 
 /// A spinner or bar on stderr with `template`, left plain if the template does not parse.
@@ -61,6 +65,7 @@ pub fn decode_to_file(
             seed,
         },
         max_faces: args.max_faces.unwrap_or(cfg.max_faces),
+        face_beam: args.face_beam,
         ..GenerateOptions::default()
     };
     let bar =

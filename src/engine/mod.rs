@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
 use crate::diffusion::{DiffusionModel, DitConfig};
-use crate::model::{FaceConfig, FaceModel};
+use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
 use crate::tokenize::Quantizer;
 
 pub use config::EngineConfig;
@@ -190,6 +190,13 @@ impl Engine {
             .sampling
             .validate()
             .map_err(|e| EngineError::InvalidInput(e.to_string()))?;
+        if let Some(beam) = request.options.face_beam
+            && !(1..=MAX_FACE_BEAM).contains(&beam)
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "face_beam must be between 1 and {MAX_FACE_BEAM}, got {beam}"
+            )));
+        }
         let cfg = &self.model_config;
         match &request.conditioning {
             Conditioning::Points(p) => {

@@ -84,6 +84,9 @@ pub struct DecodeOptions {
     /// Face budget; `None`: the engine's and the model's limit.
     pub max_faces: Option<usize>,
     pub sampling: SamplingParams,
+    /// Partial faces kept by greedy decoding (`GenerateOptions::face_beam`); `None`: the
+    /// model's default.
+    pub face_beam: Option<usize>,
 }
 
 #[derive(Debug, Clone)]

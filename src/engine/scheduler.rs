@@ -12,7 +12,9 @@ use tokio::sync::mpsc;
 
 use crate::diffusion::DiffusionModel;
 use crate::mesh::Normalization;
-use crate::model::{FaceModel, FinishReason, GenerateOptions, Generation, step_generations};
+use crate::model::{
+    DEFAULT_FACE_BEAM, FaceModel, FinishReason, GenerateOptions, Generation, step_generations,
+};
 use crate::tokenize::{Quantizer, face_positions};
 
 use super::admission::{Candidate, Capacity, admit};
@@ -303,6 +305,7 @@ impl Scheduler {
             let options = GenerateOptions {
                 sampling: p.request.options.sampling.clone(),
                 max_faces: p.faces,
+                face_beam: p.request.options.face_beam.unwrap_or(DEFAULT_FACE_BEAM),
                 ..GenerateOptions::default()
             };
             Ok(Generation::new(&self.model, &l, options)?)

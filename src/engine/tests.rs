@@ -3,7 +3,7 @@ use std::time::{Duration, Instant};
 use super::*;
 use crate::mesh::primitives::uv_sphere;
 use crate::model::testing::random_model;
-use crate::model::{GenerateOptions, Generation, SamplingParams, step_generations};
+use crate::model::{GenerateOptions, Generation, step_generations};
 use crate::tokenize::FaceToken;
 
 fn engine(config: EngineConfig) -> (Engine, FaceModel) {
@@ -23,7 +23,7 @@ fn request(model: &FaceModel, id: usize, max_faces: usize) -> Request {
         conditioning: Conditioning::Points(
             PreparedPoints::from_mesh(&shape, model.config(), id as u64).unwrap(),
         ),
-        options: DecodeOptions { max_faces: Some(max_faces), sampling: SamplingParams::greedy() },
+        options: DecodeOptions { max_faces: Some(max_faces), ..Default::default() },
         deadline: None,
     }
 }
@@ -174,7 +174,12 @@ fn invalid_options_are_refused_before_queueing() {
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
     r.options.max_faces = Some(4);
     r.options.sampling.temperature = f32::NAN;
-    assert!(matches!(engine.submit(r), Err(EngineError::InvalidInput(_))));
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    r.options.sampling.temperature = 0.0;
+    for beam in [0, crate::model::MAX_FACE_BEAM + 1] {
+        r.options.face_beam = Some(beam);
+        assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    }
     assert_eq!(engine.status().waiting, 0);
 }
 
@@ -238,7 +243,7 @@ fn image_request(id: usize, steps: usize, guidance: f32, max_faces: usize) -> Re
     Request {
         id: format!("img{id}"),
         conditioning: Conditioning::Image(ImagePrompt { image, steps, guidance, seed: id as u64 }),
-        options: DecodeOptions { max_faces: Some(max_faces), sampling: SamplingParams::greedy() },
+        options: DecodeOptions { max_faces: Some(max_faces), ..Default::default() },
         deadline: None,
     }
 }

@@ -1,12 +1,13 @@
 //! Constrained decoding: which values coordinate j of the next face may take so that the face
 //! is canonical (v0 the strict minimum vertex, v1 != v2), strictly after the previous face in
-//! lexicographic ZYX order, and not a repeat of an earlier face with the opposite winding
-//! (the tokenizer drops those: same three vertices).
+//! lexicographic ZYX order, not a repeat of an earlier face with the opposite winding (the
+//! tokenizer drops those: same three vertices), and not flat (three collinear vertices: a face
+//! with no area covers nothing, and an undertrained decoder emits runs of them).
 //!
 //! A value is allowed iff some completion of the face satisfies every constraint, so once a
-//! face has started its masks are never empty. The one exception is the opposite-winding rule,
-//! which is only checked once v0 and v1 are known (coordinates 5..8): on a tiny grid the
-//! earlier faces could then exclude every remaining v2. Generation treats an empty mask like
+//! face has started its masks are never empty. The exceptions are the opposite-winding and
+//! flat-face rules, which are only checked once v0 and v1 are known (coordinates 5..8): on a
+//! tiny grid they could then exclude every remaining v2. Generation treats an empty mask like
 //! the dead end at coordinate 0 (no canonical face can follow the last one): the mesh ends.
 
 use super::FaceToken;
@@ -33,8 +34,8 @@ fn canonical_completion_exists(prefix: &[u16], q: u64) -> bool {
 }
 
 /// With v0 and v1 fixed (`prefix` has 6..=9 coordinates): is there a v2 completing the prefix
-/// that is above v0, differs from v1, makes the face exceed `prev`, and does not repeat an
-/// earlier face (v0, v2, v1) with the opposite winding?
+/// that is above v0, differs from v1, is off the line through them, makes the face exceed
+/// `prev`, and does not repeat an earlier face (v0, v2, v1) with the opposite winding?
 fn last_vertex_exists(prefix: &[u16], earlier: &[FaceToken], q: u64) -> bool {
     let v0 = rank(&prefix[..3], 0, q);
     let v1 = rank(&prefix[3..6], 0, q);
@@ -65,7 +66,33 @@ fn last_vertex_exists(prefix: &[u16], earlier: &[FaceToken], q: u64) -> bool {
     excluded.sort_unstable();
     excluded.dedup();
     let taken = u64::from((lo..=hi).contains(&v1)) + excluded.len() as u64;
-    hi - lo + 1 > taken
+    let span = hi - lo + 1;
+    // A line meets the grid in at most q points: only a narrow range can run out of them.
+    if span > taken + q {
+        return true;
+    }
+    let on_line = line_beyond(&prefix[..3], &prefix[3..6], q)
+        .map(|p| rank(&p, 0, q))
+        .filter(|w| (lo..=hi).contains(w) && *w != v1 && excluded.binary_search(w).is_err())
+        .count();
+    span > taken + on_line as u64
+}
+
+/// The grid points after `v0` on the line through `v0` and `v1` (v1 > v0), in order: the
+/// places where v2 would make a flat face.
+fn line_beyond(v0: &[u16], v1: &[u16], q: u64) -> impl Iterator<Item = [u16; 3]> {
+    let d: [i64; 3] = std::array::from_fn(|i| i64::from(v1[i]) - i64::from(v0[i]));
+    let g = d.iter().fold(0, |g, &c| gcd(g, c.unsigned_abs())).max(1) as i64;
+    let step = d.map(|c| c / g);
+    let start: [i64; 3] = std::array::from_fn(|i| i64::from(v0[i]));
+    (1..).map_while(move |k| {
+        let p: [i64; 3] = std::array::from_fn(|i| start[i] + k * step[i]);
+        p.iter().all(|&c| (0..q as i64).contains(&c)).then(|| p.map(|c| c as u16))
+    })
+}
+
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 { a } else { gcd(b, a % b) }
 }
 
 /// Does some completion of `prefix` give a face allowed after the sequence `earlier`?
@@ -181,6 +208,15 @@ mod tests {
         out
     }
 
+    /// Are the three vertices of `face` on one line?
+    fn is_flat(face: &FaceToken) -> bool {
+        let v = |i: usize| -> [i64; 3] { std::array::from_fn(|k| i64::from(face[3 * i + k])) };
+        let (a, b, c) = (v(0), v(1), v(2));
+        let (u, w) =
+            ([b[0] - a[0], b[1] - a[1], b[2] - a[2]], [c[0] - a[0], c[1] - a[1], c[2] - a[2]]);
+        u[1] * w[2] == u[2] * w[1] && u[2] * w[0] == u[0] * w[2] && u[0] * w[1] == u[1] * w[0]
+    }
+
     fn reversed(f: &FaceToken) -> FaceToken {
         [f[0], f[1], f[2], f[6], f[7], f[8], f[3], f[4], f[5]]
     }
@@ -203,6 +239,7 @@ mod tests {
                 f.starts_with(&prefix)
                     && earlier.last().is_none_or(|p| f > p)
                     && !earlier.contains(&reversed(f))
+                    && !is_flat(f)
             });
             let ours = completion_exists(&prefix, &earlier, q as usize);
             if prefix.len() >= 6 {
@@ -250,6 +287,20 @@ mod tests {
         let mut allowed = Vec::new();
         assert_eq!(allowed_values(&[], &[last], q as usize, &mut allowed), 0);
         assert!(allowed_values(&[], &[], q as usize, &mut allowed) > 0);
+    }
+
+    #[test]
+    fn flat_faces_are_masked() {
+        let q = 8;
+        let mut allowed = Vec::new();
+        // v0 = (0,0,0), v1 = (1,2,3): v2 = (2,4,6) is on their line, (2,4,5) is not.
+        allowed_values(&[0, 0, 0, 1, 2, 3, 2, 4], &[], q, &mut allowed);
+        assert!(!allowed[6] && allowed[5] && allowed[7]);
+        assert!(is_flat(&[0, 0, 0, 1, 2, 3, 2, 4, 6]) && !is_flat(&[0, 0, 0, 1, 2, 3, 2, 4, 5]));
+        // v0 and v1 differ in x only: once v2 shares their z and y, no x is left.
+        assert_eq!(allowed_values(&[1, 1, 0, 1, 1, 5, 1, 1], &[], q, &mut allowed), 0);
+        assert!(allowed_values(&[1, 1, 0, 1, 1, 5, 1], &[], q, &mut allowed) > 0);
+        assert!(!allowed[1] && allowed[2]);
     }
 
     #[test]

@@ -6,10 +6,15 @@ use std::ops::ControlFlow;
 
 use candle_core::Tensor;
 
-use super::config::COORDS_PER_FACE;
-use super::constraints::allowed_values;
+use super::face_search::{Choice, RowSearch, choose_faces};
 use super::sampling::{Sampler, SamplingParams};
 use super::{FaceModel, FaceToken, ModelError, Result, SequenceState};
+
+/// Partial faces kept by greedy decoding; see `face_search`.
+pub const DEFAULT_FACE_BEAM: usize = 4;
+
+/// The widest face beam a request may ask for: the head runs once per kept partial face.
+pub const MAX_FACE_BEAM: usize = 32;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct GenerateOptions {
@@ -20,6 +25,9 @@ pub struct GenerateOptions {
     pub min_faces: usize,
     /// Mask logits so that every face is canonical and after the previous one.
     pub constrained: bool,
+    /// Greedy decoding keeps this many partial faces while it picks a face's 9 coordinates,
+    /// and takes the most likely whole face (see `face_search`); 1 is per-coordinate greedy.
+    pub face_beam: usize,
 }
 
 impl Default for GenerateOptions {
@@ -29,6 +37,7 @@ impl Default for GenerateOptions {
             max_faces: usize::MAX,
             min_faces: 0,
             constrained: true,
+            face_beam: DEFAULT_FACE_BEAM,
         }
     }
 }
@@ -77,6 +86,12 @@ impl Generation {
                 options.min_faces, options.max_faces
             )));
         }
+        if !(1..=MAX_FACE_BEAM).contains(&options.face_beam) {
+            return Err(ModelError::bad_input(format!(
+                "face_beam {} must be in 1..={MAX_FACE_BEAM}",
+                options.face_beam
+            )));
+        }
         let finish = (options.max_faces == 0).then_some(FinishReason::MaxFaces);
         Ok(Self {
             state: model.start_sequence(latents)?,
@@ -120,7 +135,6 @@ pub struct StepEvent {
 /// parameters and constraints. Returns one event per input row (finished rows only repeat
 /// their reason).
 pub fn step_generations(model: &FaceModel, gens: &mut [&mut Generation]) -> Result<Vec<StepEvent>> {
-    let q = model.config().quant_levels;
     let mut events: Vec<StepEvent> =
         gens.iter().map(|g| StepEvent { face: None, finished: g.finish }).collect();
     let active: Vec<usize> = (0..gens.len()).filter(|&i| gens[i].finish.is_none()).collect();
@@ -136,46 +150,32 @@ pub fn step_generations(model: &FaceModel, gens: &mut [&mut Generation]) -> Resu
         }
         model.step(&mut states)?
     };
-    let mut faces = vec![[0u16; COORDS_PER_FACE]; active.len()];
-    let mut ended: Vec<Option<FinishReason>> = vec![None; active.len()];
-    let mut allowed = Vec::with_capacity(q + 1);
-    let mut context = hidden;
-    for j in 0..COORDS_PER_FACE {
-        let logits = model.head_logits(j, &context)?.to_vec2::<f32>()?;
-        for (row, &i) in active.iter().enumerate() {
-            if ended[row].is_some() {
-                continue;
-            }
-            let g = &mut *gens[i];
-            if g.options.constrained {
-                allowed_values(&faces[row][..j], g.state.faces(), q, &mut allowed);
-            } else {
-                allowed.clear();
-                allowed.resize(q, true);
-            }
-            let eos_ok = j == 0 && g.state.faces().len() >= g.options.min_faces;
-            match g.sampler.pick(&logits[row], |c| if c == q { eos_ok } else { allowed[c] }) {
-                Some(c) if c == q => ended[row] = Some(FinishReason::EndOfMesh),
-                Some(c) => faces[row][j] = c as u16,
-                // No face can follow the sequence (see `constraints`): it ends here.
-                None => ended[row] = Some(FinishReason::DeadEnd),
-            }
-        }
-        if j + 1 < COORDS_PER_FACE {
-            let column: Vec<u16> = faces.iter().map(|f| f[j]).collect();
-            context = model.extend_context(&context, j, &column)?;
-        }
-    }
-    for (row, &i) in active.iter().enumerate() {
+    let choices = {
+        let mut searches: Vec<RowSearch> = gens
+            .iter_mut()
+            .filter(|g| g.finish.is_none())
+            .map(|g| RowSearch {
+                sampler: &mut g.sampler,
+                earlier: g.state.faces(),
+                constrained: g.options.constrained,
+                eos_ok: g.state.faces().len() >= g.options.min_faces,
+                beam: g.options.face_beam,
+            })
+            .collect();
+        choose_faces(model, hidden, &mut searches)?
+    };
+    for (choice, &i) in choices.into_iter().zip(&active) {
         let g = &mut *gens[i];
-        if let Some(reason) = ended[row] {
-            g.finish = Some(reason);
-        } else {
-            g.state.push_face(faces[row])?;
-            events[i].face = Some(faces[row]);
-            if g.state.faces().len() >= g.options.max_faces {
-                g.finish = Some(FinishReason::MaxFaces);
+        match choice {
+            Choice::Face(face) => {
+                g.state.push_face(face)?;
+                events[i].face = Some(face);
+                if g.state.faces().len() >= g.options.max_faces {
+                    g.finish = Some(FinishReason::MaxFaces);
+                }
             }
+            Choice::EndOfMesh => g.finish = Some(FinishReason::EndOfMesh),
+            Choice::DeadEnd => g.finish = Some(FinishReason::DeadEnd),
         }
         events[i].finished = g.finish;
     }
@@ -252,6 +252,7 @@ mod tests {
             seed in any::<u64>(),
             temperature in prop_oneof![Just(0.0f32), 0.5f32..3.0],
             q in prop_oneof![Just(3usize), Just(4), Just(16)],
+            face_beam in prop_oneof![Just(1usize), Just(4)],
         ) {
             let mut cfg = FaceConfig::micro();
             cfg.quant_levels = q;
@@ -262,6 +263,7 @@ mod tests {
                 max_faces: 30,
                 min_faces: 30, // no early EOS: push the sequences to their limits
                 constrained: true,
+                face_beam,
             };
             let (faces, reason) = generate(&model, &latents, options, |_| ControlFlow::Continue(())).unwrap();
             for (i, f) in faces.iter().enumerate() {
@@ -277,8 +279,13 @@ mod tests {
         let cfg = FaceConfig::micro();
         let (_, model) = random_model(&cfg);
         let latents = random_latents(&cfg, 3, 11);
+        // Row 1 decodes greedily with a face beam, next to two sampled rows.
         let options = |max_faces, seed| GenerateOptions {
-            sampling: SamplingParams { temperature: 1.0, top_k: Some(5), top_p: Some(0.9), seed },
+            sampling: if seed == 1 {
+                SamplingParams::greedy()
+            } else {
+                SamplingParams { temperature: 1.0, top_k: Some(5), top_p: Some(0.9), seed }
+            },
             max_faces,
             ..GenerateOptions::default()
         };
@@ -309,6 +316,19 @@ mod tests {
         for r in 0..3 {
             assert_eq!(gens[r].faces(), &single[r][..], "row {r}");
             assert!(gens[r].faces().len() <= budgets[r]);
+        }
+    }
+
+    #[test]
+    fn face_beams_outside_the_limit_are_refused() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let latents = random_latents(&cfg, 1, 0);
+        for (face_beam, ok) in
+            [(0, false), (1, true), (MAX_FACE_BEAM, true), (MAX_FACE_BEAM + 1, false)]
+        {
+            let options = GenerateOptions { face_beam, ..GenerateOptions::default() };
+            assert_eq!(Generation::new(&model, &latents, options).is_ok(), ok, "{face_beam}");
         }
     }
 

@@ -12,7 +12,8 @@
 //! gen     = Generation::new(&model, &latents.get(i), opts)   // cross-attn K/V computed here, once
 //! loop { events = step_generations(&model, &mut running) }   // one decoder step for all rows,
 //!                                                            // then 9 head passes with per-row
-//!                                                            // sampling and constraint masks
+//!                                                            // sampling or face beams, and
+//!                                                            // constraint masks
 //! ```
 //! A generation may join `running` at any iteration (a face boundary) and is dropped when its
 //! event says it finished; `Generation::cancel` ends it early. Lower level, the same loop is
@@ -50,6 +51,7 @@ mod encoder;
 mod end_to_end;
 mod error;
 mod face;
+mod face_search;
 mod fourier;
 mod generate;
 mod head;
@@ -69,7 +71,8 @@ pub use encoder::EncoderOutput;
 pub use error::ModelError;
 pub use face::{FaceModel, SequenceState, TrainLoss};
 pub use generate::{
-    FaceStream, FinishReason, GenerateOptions, Generation, StepEvent, generate, step_generations,
+    DEFAULT_FACE_BEAM, FaceStream, FinishReason, GenerateOptions, Generation, MAX_FACE_BEAM,
+    StepEvent, generate, step_generations,
 };
 pub use input::PointCloudInput;
 pub use sampling::{Sampler, SamplingParams};

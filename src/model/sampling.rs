@@ -60,11 +60,16 @@ impl Sampler {
         Self { params, rng }
     }
 
+    /// Temperature 0: the most likely class, no randomness.
+    pub fn is_greedy(&self) -> bool {
+        self.params.temperature <= 0.0
+    }
+
     /// Picks a class among those for which `allowed` is true; `None` when none is.
     /// Non-finite logits count as the least likely.
     pub fn pick(&mut self, logits: &[f32], allowed: impl Fn(usize) -> bool) -> Option<usize> {
         let score = |l: f32| if l.is_finite() { l } else { f32::MIN };
-        if self.params.temperature <= 0.0 {
+        if self.is_greedy() {
             // Greedy: the first maximum, so ties go to the lower class.
             return logits
                 .iter()

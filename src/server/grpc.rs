@@ -121,6 +121,7 @@ impl GrpcService {
                 temperature: o.temperature,
                 top_k: o.top_k.map(|k| k as usize),
                 top_p: o.top_p,
+                face_beam: o.face_beam.map(|n| n as usize),
                 format: None,
             },
         };
@@ -156,6 +157,7 @@ impl GrpcService {
             temperature: options.temperature,
             top_k: options.top_k.map(|k| k as usize),
             top_p: options.top_p,
+            face_beam: options.face_beam.map(|n| n as usize),
             seed: options.seed,
             format: None,
         };

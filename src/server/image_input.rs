@@ -31,6 +31,9 @@ pub struct GenerateOptions {
     pub temperature: Option<f32>,
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,
+    /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
+    /// at most 32); 1 picks coordinate by coordinate.
+    pub face_beam: Option<usize>,
     /// glb (default), obj, ply or stl.
     pub format: Option<String>,
 }
@@ -128,7 +131,8 @@ impl ImageUpload {
         let o = self.options;
         let format = output_format(o.format.as_deref())?;
         let seed = o.seed.unwrap_or(0);
-        let decode = decode_options(o.max_faces, o.temperature, o.top_k, o.top_p, seed)?;
+        let decode =
+            decode_options(o.max_faces, o.temperature, o.top_k, o.top_p, o.face_beam, seed)?;
         let image = decode_image(&self.image, &defaults.decode).map_err(image_error)?;
         let prompt = ImagePrompt {
             image,

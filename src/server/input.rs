@@ -8,7 +8,7 @@ use utoipa::{IntoParams, ToSchema};
 
 use crate::engine::DecodeOptions;
 use crate::mesh::{Format, Mesh, ReadLimits, read_mesh};
-use crate::model::SamplingParams;
+use crate::model::{MAX_FACE_BEAM, SamplingParams};
 
 use super::error::ApiError;
 
@@ -22,6 +22,9 @@ pub struct ReconstructOptions {
     pub temperature: Option<f32>,
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,
+    /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
+    /// at most 32); 1 picks coordinate by coordinate.
+    pub face_beam: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,
     /// glb (default), obj, ply or stl.
@@ -40,6 +43,7 @@ pub struct PointsBody {
     pub temperature: Option<f32>,
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,
+    pub face_beam: Option<usize>,
     pub seed: Option<u64>,
     pub format: Option<String>,
 }
@@ -63,8 +67,14 @@ impl ReconstructOptions {
     pub fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
         let format = output_format(self.format.as_deref())?;
         let seed = self.seed.unwrap_or(0);
-        let decode =
-            decode_options(self.max_faces, self.temperature, self.top_k, self.top_p, seed)?;
+        let decode = decode_options(
+            self.max_faces,
+            self.temperature,
+            self.top_k,
+            self.top_p,
+            self.face_beam,
+            seed,
+        )?;
         Ok(ParsedRequest { input, decode, seed, format })
     }
 }
@@ -79,17 +89,25 @@ pub fn output_format(name: Option<&str>) -> Result<Format, ApiError> {
     }
 }
 
-/// Decoding options from a request's fields; greedy unless a temperature is given.
+/// Decoding options from a request's fields, checked; greedy unless a temperature is given.
 pub fn decode_options(
     max_faces: Option<usize>,
     temperature: Option<f32>,
     top_k: Option<usize>,
     top_p: Option<f32>,
+    face_beam: Option<usize>,
     seed: u64,
 ) -> Result<DecodeOptions, ApiError> {
     let sampling = SamplingParams { temperature: temperature.unwrap_or(0.0), top_k, top_p, seed };
     sampling.validate().map_err(|e| ApiError::invalid(e.to_string()))?;
-    Ok(DecodeOptions { max_faces, sampling })
+    if let Some(beam) = face_beam
+        && !(1..=MAX_FACE_BEAM).contains(&beam)
+    {
+        return Err(ApiError::invalid(format!(
+            "face_beam {beam} must be between 1 and {MAX_FACE_BEAM}"
+        )));
+    }
+    Ok(DecodeOptions { max_faces, sampling, face_beam })
 }
 
 /// The request's media type, lower case, without parameters ("" when absent).
@@ -194,6 +212,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         temperature: b.temperature,
         top_k: b.top_k,
         top_p: b.top_p,
+        face_beam: b.face_beam,
         seed: b.seed,
         format: b.format,
     };

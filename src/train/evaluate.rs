@@ -66,6 +66,12 @@ pub struct EvalReport {
     pub meshes: usize,
     /// Teacher-forced loss (nats per face, EOS included), as in training.
     pub loss: f64,
+    /// The same loss with each mesh decoded from the next mesh's points. Its excess over
+    /// `loss` is how much the decoder reads the shape from its latents; a decoder that only
+    /// learned the prior of face sequences scores the same with any points. (None in logs
+    /// written before it was measured, or for a set of one mesh.)
+    #[serde(default)]
+    pub loss_other_points: Option<f64>,
     pub chamfer_mean: Option<f64>,
     pub hausdorff_mean: Option<f64>,
     /// Reconstructions with no faces (or that failed): counted, never dropped.
@@ -85,15 +91,10 @@ pub fn evaluate(
     metric: &MetricOptions,
 ) -> Result<EvalReport, crate::model::ModelError> {
     let device = model.device().clone();
-    let mut loss_sum = 0.0;
-    let mut positions = 0usize;
-    for chunk in set.items.chunks(batch.max(1)) {
-        let examples: Vec<TrainExample> = chunk.iter().map(|(_, s)| example(s)).collect();
-        let b = TrainBatch::new(&examples, &device)?;
-        let n: usize = chunk.iter().map(|(_, s)| s.faces.len() + 1).sum();
-        loss_sum += f64::from(model.loss(&b)?.coords.to_scalar::<f32>()?) * n as f64;
-        positions += n;
-    }
+    let n = set.items.len();
+    let own = teacher_forced_loss(model, set, batch, |i| i)?;
+    let other =
+        if n > 1 { Some(teacher_forced_loss(model, set, batch, |i| (i + 1) % n)?) } else { None };
     let predictions = reconstruct(model, set, batch, &device)?;
     let q = Quantizer::new(model.config().quant_levels as u16)
         .map_err(|e| crate::model::ModelError::bad_input(e.to_string()))?;
@@ -111,13 +112,40 @@ pub fn evaluate(
     let meshes = set.items.len();
     Ok(EvalReport {
         meshes,
-        loss: if positions > 0 { loss_sum / positions as f64 } else { 0.0 },
+        loss: own,
+        loss_other_points: other,
         chamfer_mean: summary.chamfer_mean,
         hausdorff_mean: summary.hausdorff_mean,
         failures: summary.failures,
         face_count_error: if meshes > 0 { count_error / meshes as f64 } else { 0.0 },
         exact,
     })
+}
+
+/// Teacher-forced loss (nats per face position) of every mesh of the set, mesh `i` decoded
+/// from the points of mesh `points_of(i)`, in batches of `batch` meshes.
+fn teacher_forced_loss(
+    model: &FaceModel,
+    set: &EvalSet,
+    batch: usize,
+    points_of: impl Fn(usize) -> usize,
+) -> Result<f64, crate::model::ModelError> {
+    let indices: Vec<usize> = (0..set.items.len()).collect();
+    let (mut loss_sum, mut positions) = (0.0, 0usize);
+    for chunk in indices.chunks(batch.max(1)) {
+        let examples: Vec<TrainExample> = chunk
+            .iter()
+            .map(|&i| TrainExample {
+                faces: &set.items[i].1.faces,
+                ..example(&set.items[points_of(i)].1)
+            })
+            .collect();
+        let b = TrainBatch::new(&examples, model.device())?;
+        let n: usize = chunk.iter().map(|&i| set.items[i].1.faces.len() + 1).sum();
+        loss_sum += f64::from(model.loss(&b)?.coords.to_scalar::<f32>()?) * n as f64;
+        positions += n;
+    }
+    Ok(if positions > 0 { loss_sum / positions as f64 } else { 0.0 })
 }
 
 /// Greedy reconstructions of every mesh of the set, `batch` sequences decoded together.
@@ -159,5 +187,49 @@ pub fn example(s: &TrainingSample) -> TrainExample<'_> {
         normals: &s.normals,
         query_indices: &s.queries,
         faces: &s.faces,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FaceConfig;
+    use crate::model::testing::random_model;
+
+    fn sample_config(cfg: &FaceConfig) -> SampleConfig {
+        SampleConfig {
+            levels: cfg.quant_levels as u16,
+            num_points: cfg.num_points,
+            num_queries: cfg.num_latents,
+            augment: AugmentConfig::OFF,
+        }
+    }
+
+    #[test]
+    fn other_points_loss_pairs_each_mesh_with_the_next_meshs_points() {
+        // The training data is quantized to the usual 128 levels.
+        let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+        let (_, model) = random_model(&cfg);
+        let set = EvalSet::build(None, 0, 3, &sample_config(&cfg), cfg.max_faces).unwrap();
+        assert_eq!(set.items.len(), 3);
+        let own = teacher_forced_loss(&model, &set, 2, |i| i).unwrap();
+        let other = teacher_forced_loss(&model, &set, 2, |i| (i + 1) % 3).unwrap();
+        assert!(own.is_finite() && other.is_finite());
+        // Other shapes' latents change the predictions even with random weights.
+        assert!((own - other).abs() > 1e-4, "own {own}, other {other}");
+
+        // A set of copies of one mesh: another mesh's points are its own points.
+        let copies = EvalSet { items: vec![set.items[0].clone(); 3] };
+        let same = teacher_forced_loss(&model, &copies, 2, |i| i).unwrap();
+        let swapped = teacher_forced_loss(&model, &copies, 2, |i| (i + 1) % 3).unwrap();
+        assert!((same - swapped).abs() < 1e-5, "{same} vs {swapped}");
+
+        let report = evaluate(&model, &set, 2, &MetricOptions::default()).unwrap();
+        assert_eq!((report.loss, report.loss_other_points), (own, Some(other)));
+        let one = EvalSet { items: set.items[..1].to_vec() };
+        assert_eq!(
+            evaluate(&model, &one, 2, &MetricOptions::default()).unwrap().loss_other_points,
+            None
+        );
     }
 }

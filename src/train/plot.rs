@@ -17,6 +17,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .map_err(|_| fail(&"invalid embedded font"))?;
     let mut train = Vec::new();
     let mut eval_loss = Vec::new();
+    let mut eval_other = Vec::new();
     let mut eval_cd = Vec::new();
     // A log holds one kind of run; a diffusion run's records name its own loss and pipeline.
     let mut diffusion = false;
@@ -31,7 +32,12 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
                 train.push((*step as f64, *loss));
                 continue;
             }
-            LogRecord::Eval { step, report, .. } => (step, (report.loss, report.chamfer_mean)),
+            LogRecord::Eval { step, report, .. } => {
+                if let Some(other) = report.loss_other_points {
+                    eval_other.push((*step as f64, other));
+                }
+                (step, (report.loss, report.chamfer_mean))
+            }
             LogRecord::DitEval { step, report, .. } => (step, (report.loss, report.chamfer_mean)),
         };
         eval_loss.push((*step as f64, eval.0));
@@ -55,7 +61,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
     }
     let smoothed = exponential_moving_average(&train, 0.98);
     let max_step = train.iter().map(|p| p.0).fold(1.0, f64::max);
-    let losses = train.iter().chain(&eval_loss).map(|p| p.1);
+    let losses = train.iter().chain(&eval_loss).chain(&eval_other).map(|p| p.1);
     let (lo, hi) =
         losses.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
 
@@ -85,6 +91,15 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .map_err(|e| fail(&e))?
         .label("evaluation")
         .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], RED.stroke_width(2)));
+    if !eval_other.is_empty() {
+        // The gap to the evaluation curve is what the decoder reads from the shape's points.
+        let orange = RGBColor(230, 140, 0);
+        chart
+            .draw_series(LineSeries::new(eval_other, orange.stroke_width(2)).point_size(4))
+            .map_err(|e| fail(&e))?
+            .label("evaluation, another mesh's points")
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 16, y)], orange.stroke_width(2)));
+    }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.8))

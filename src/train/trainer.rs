@@ -358,8 +358,10 @@ impl run_loop::Steps for Trainer {
 pub fn eval_line(step: u64, r: &EvalReport) -> String {
     let opt = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.4}"));
     format!(
-        "eval @ {step}: loss {:.3}, CD {}, HD {}, failures {}/{}, exact {}, face-count error {:.2}",
+        "eval @ {step}: loss {:.3} ({} with other meshes' points), CD {}, HD {}, failures {}/{}, \
+         exact {}, face-count error {:.2}",
         r.loss,
+        r.loss_other_points.map_or_else(|| "-".into(), |v| format!("{v:.3}")),
         opt(r.chamfer_mean),
         opt(r.hausdorff_mean),
         r.failures,
