@@ -9,8 +9,8 @@ use candle_nn::{VarBuilder, VarMap};
 use meshstream::mesh::primitives::uv_sphere;
 use meshstream::mesh::{farthest_point_sampling, sample_surface};
 use meshstream::model::{
-    BaselineState, CoordinateBaseline, FaceConfig, FaceModel, GenerateOptions, Generation,
-    SamplingParams, checkpoint, parse_device, step_generations,
+    BaselineState, CoordinateBaseline, DEFAULT_FACE_BEAM, FaceConfig, FaceModel, GenerateOptions,
+    Generation, SamplingParams, checkpoint, parse_device, step_generations,
 };
 
 #[derive(clap::Args, Debug, Clone)]
@@ -45,14 +45,16 @@ fn random_weights(
     Ok((FaceModel::new(cfg, vb.pp("face"))?, CoordinateBaseline::new(cfg, vb.pp("baseline"))?))
 }
 
-/// Decodes up to `faces` faces (no end of mesh) for `batch` sequences together; returns the
-/// seconds taken, the faces decoded, and one sequence's KV-cache bytes (self, cross) at the end.
+/// Decodes up to `faces` faces (no end of mesh) for `batch` sequences together, greedily with
+/// `face_beam`; returns the seconds taken, the faces decoded, and one sequence's KV-cache bytes
+/// (self, cross) at the end.
 fn decode_face(
     model: &FaceModel,
     latents: &Tensor,
     batch: usize,
     faces: usize,
     constrained: bool,
+    face_beam: usize,
 ) -> anyhow::Result<(f64, usize, (usize, usize))> {
     let options = GenerateOptions {
         sampling: SamplingParams::greedy(),
@@ -61,7 +63,7 @@ fn decode_face(
         // at a dead end, when no canonical face can follow).
         min_faces: faces,
         constrained,
-        ..GenerateOptions::default()
+        face_beam,
     };
     let mut gens = (0..batch)
         .map(|_| Generation::new(model, latents, options.clone()))
@@ -140,22 +142,34 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
         ),
         format!("{:.1} ms (FPS {:.1} ms), best of 3", total * 1e3, fps * 1e3),
     ]);
-    decode_face(&model, &latents, 1, 8, false)?; // warm-up
+    decode_face(&model, &latents, 1, 8, false, 1)?; // warm-up
     for &b in &args.batches {
-        let (secs, n, _) = decode_face(&model, &latents, b, args.faces, false)?;
+        let (secs, n, _) = decode_face(&model, &latents, b, args.faces, false, 1)?;
         table.add_row(vec![
             format!("FACE decode, batch {b} x {} faces", args.faces),
             format!("{:.0} faces/s aggregate ({:.2} s)", n as f64 / secs, secs),
         ]);
     }
-    let (secs, n, _) = decode_face(&model, &latents, 1, args.faces, true)?;
-    table.add_row(vec![
-        "FACE decode, batch 1, constrained masks on".to_string(),
-        format!("{:.0} faces/s ({n} faces before the budget or a dead end)", n as f64 / secs),
-    ]);
+    // What a greedy request costs: masks on, per-coordinate (beam 1) or the default beam.
+    for &b in &args.batches {
+        let mut rates = Vec::new();
+        for beam in [1, DEFAULT_FACE_BEAM] {
+            let (secs, n, _) = decode_face(&model, &latents, b, args.faces, true, beam)?;
+            rates.push(n as f64 / secs);
+        }
+        table.add_row(vec![
+            format!("FACE decode, batch {b}, masks on: face beam 1 vs {DEFAULT_FACE_BEAM}"),
+            format!(
+                "{:.0} vs {:.0} faces/s aggregate ({:.2}x)",
+                rates[0],
+                rates[1],
+                rates[1] / rates[0]
+            ),
+        ]);
+    }
     let mut cache_rows = Vec::new();
     for &faces in &args.compare {
-        let (face_secs, _, face_cache) = decode_face(&model, &latents, 1, faces, false)?;
+        let (face_secs, _, face_cache) = decode_face(&model, &latents, 1, faces, false, 1)?;
         let (base_secs, base_cache) = decode_baseline(&baseline, &latents, faces)?;
         table.add_row(vec![
             format!("{faces} faces: FACE ({faces} steps) vs per-coordinate ({} steps)", 9 * faces),
