@@ -71,45 +71,16 @@ pub(super) fn choose_faces(
         while start < partials.len() {
             let row = partials[start].row;
             let end = start + partials[start..].iter().take_while(|p| p.row == row).count();
+            let step = Step { j, q, eos_ok: j == 0 && rows[row].eos_ok, logits: &logits };
             let search = &mut rows[row];
-            let eos_ok = j == 0 && search.eos_ok;
-            if search.sampler.is_greedy() {
-                let mut candidates = Vec::new();
-                for (index, p) in partials.iter().enumerate().take(end).skip(start) {
-                    let log_probs = log_softmax(&logits[index]);
-                    allowed_for(search, &p.coords[..j], q, &mut allowed);
-                    candidates.extend((0..q).filter(|&c| allowed[c]).map(|c| {
-                        let mut coords = p.coords;
-                        coords[j] = c as u16;
-                        (index, Partial { row, coords, log_prob: p.log_prob + log_probs[c] })
-                    }));
-                    // At the first coordinate (one partial) end of mesh competes with each
-                    // value; ties go to the value, as in per-coordinate greedy.
-                    if eos_ok && candidates.iter().all(|c| c.1.log_prob < log_probs[q]) {
-                        candidates.clear();
-                        choices[row] = Choice::EndOfMesh;
-                    }
-                }
-                // Stable: ties keep the earlier partial and the lower value. A row left with
-                // no candidate keeps its choice: end of mesh, or else a dead end.
-                candidates.sort_by(|a, b| b.1.log_prob.total_cmp(&a.1.log_prob));
-                candidates.truncate(search.beam.max(1));
-                next.extend(candidates);
+            let extended = if search.sampler.is_greedy() {
+                extend_by_beam(search, &partials, start..end, &step, &mut allowed)
             } else {
-                let p = partials[start];
-                allowed_for(search, &p.coords[..j], q, &mut allowed);
-                let pick = search
-                    .sampler
-                    .pick(&logits[start], |c| if c == q { eos_ok } else { allowed[c] });
-                match pick {
-                    Some(c) if c == q => choices[row] = Choice::EndOfMesh,
-                    Some(c) => {
-                        let mut coords = p.coords;
-                        coords[j] = c as u16;
-                        next.push((start, Partial { coords, ..p }));
-                    }
-                    None => choices[row] = Choice::DeadEnd,
-                }
+                extend_by_sampling(search, &partials[start], start, &step, &mut allowed)
+            };
+            match extended {
+                Ok(candidates) => next.extend(candidates),
+                Err(choice) => choices[row] = choice,
             }
             start = end;
         }
@@ -121,8 +92,9 @@ pub(super) fn choose_faces(
             if parents.len() != partials.len()
                 || parents.iter().enumerate().any(|(i, &p)| p as usize != i)
             {
-                let parents = Tensor::from_vec(parents.clone(), parents.len(), context.device())?;
-                context = context.index_select(&parents, 0)?;
+                let n = parents.len();
+                context =
+                    context.index_select(&Tensor::from_vec(parents, n, context.device())?, 0)?;
             }
             let column: Vec<u16> = next.iter().map(|(_, p)| p.coords[j]).collect();
             context = model.extend_context(&context, j, &column)?;
@@ -134,6 +106,73 @@ pub(super) fn choose_faces(
         choices[p.row] = Choice::Face(p.coords);
     }
     Ok(choices)
+}
+
+/// What every row's choice at coordinate `j` reads.
+struct Step<'a> {
+    j: usize,
+    q: usize,
+    /// End of mesh may be chosen now (first coordinate, and the row allows it).
+    eos_ok: bool,
+    /// One row of logits per partial face.
+    logits: &'a [Vec<f32>],
+}
+
+/// A greedy row's `beam` most likely extensions (parent index, partial) of its partial faces
+/// `mine` by coordinate `j`; an empty list is a dead end, `Err` is end of mesh.
+fn extend_by_beam(
+    search: &RowSearch,
+    partials: &[Partial],
+    mine: std::ops::Range<usize>,
+    step: &Step,
+    allowed: &mut Vec<bool>,
+) -> std::result::Result<Vec<(usize, Partial)>, Choice> {
+    let (j, q) = (step.j, step.q);
+    let mut candidates = Vec::new();
+    for index in mine {
+        let p = partials[index];
+        let log_probs = log_softmax(&step.logits[index]);
+        allowed_for(search, &p.coords[..j], q, allowed);
+        // At the first coordinate (one partial) end of mesh competes with each value; ties
+        // go to the value, as in per-coordinate greedy.
+        let best = (0..q).filter(|&c| allowed[c]).map(|c| log_probs[c]).reduce(f32::max);
+        if step.eos_ok && best.is_none_or(|best| log_probs[q] > best) {
+            return Err(Choice::EndOfMesh);
+        }
+        candidates.extend((0..q).filter(|&c| allowed[c]).map(|c| {
+            let mut coords = p.coords;
+            coords[j] = c as u16;
+            (index, Partial { coords, log_prob: p.log_prob + log_probs[c], ..p })
+        }));
+    }
+    // Stable: ties keep the earlier partial and the lower value.
+    candidates.sort_by(|a, b| b.1.log_prob.total_cmp(&a.1.log_prob));
+    candidates.truncate(search.beam.max(1));
+    Ok(candidates)
+}
+
+/// A sampled row's partial face (at `index`) extended by one drawn coordinate (a list of one,
+/// as the beam's); `Err` when the row ends (end of mesh, or a dead end).
+fn extend_by_sampling(
+    search: &mut RowSearch,
+    p: &Partial,
+    index: usize,
+    step: &Step,
+    allowed: &mut Vec<bool>,
+) -> std::result::Result<Vec<(usize, Partial)>, Choice> {
+    let (j, q) = (step.j, step.q);
+    allowed_for(search, &p.coords[..j], q, allowed);
+    let pick =
+        search.sampler.pick(&step.logits[index], |c| if c == q { step.eos_ok } else { allowed[c] });
+    match pick {
+        Some(c) if c == q => Err(Choice::EndOfMesh),
+        Some(c) => {
+            let mut coords = p.coords;
+            coords[j] = c as u16;
+            Ok(vec![(index, Partial { coords, ..*p })])
+        }
+        None => Err(Choice::DeadEnd),
+    }
 }
 
 fn allowed_for(search: &RowSearch, prefix: &[u16], q: usize, allowed: &mut Vec<bool>) {
