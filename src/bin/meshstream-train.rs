@@ -208,8 +208,8 @@ struct DitArgs {
     /// Rendered views of each augmented copy.
     #[arg(long, default_value_t = 4)]
     views: usize,
-    /// Augmentation rotation. The renderer's up axis is +Y, so the autoencoder trainer's
-    /// `upright` (about z) would tilt the views; the camera azimuth already turns the mesh.
+    /// Augmentation rotation. None by default: the camera's random azimuth already turns the
+    /// mesh about the vertical axis (y, the renderer's up).
     #[arg(long, value_enum, default_value_t = Rotation::None)]
     rotation: Rotation,
     /// Mirroring probability per axis (a y flip shows the mesh upside down).
