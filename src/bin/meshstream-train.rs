@@ -22,6 +22,7 @@ use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
 use meshstream::train::procedural::{ProceduralShapes, ShapeKind};
+use meshstream::train::run_loop::Plan;
 use meshstream::train::trainer::{TrainConfig, Trainer, eval_line, stop_flag_on_ctrl_c};
 
 /// Train FACE models on your meshes (and on procedural low-poly shapes), export the weights
@@ -116,15 +117,12 @@ struct AeArgs {
     stop_at: Option<u64>,
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
+    #[command(flatten)]
+    plan: PlanArgs,
     #[arg(long, default_value_t = 200)]
     warmup: u64,
-    /// The cosine schedule ends at lr x this.
-    #[arg(long, default_value_t = 0.1)]
-    min_lr_ratio: f64,
     #[arg(long, default_value_t = 0.1)]
     weight_decay: f64,
-    #[arg(long, default_value_t = 1.0)]
-    grad_clip: f64,
     /// Batches whose gradients are summed into one step.
     #[arg(long, default_value_t = 1)]
     accumulate: usize,
@@ -147,10 +145,6 @@ struct AeArgs {
     flip_probability: f32,
     #[arg(long, default_value_t = 0.25)]
     scale_jitter: f32,
-    #[arg(long, default_value_t = 250)]
-    checkpoint_every: u64,
-    #[arg(long, default_value_t = 1000)]
-    eval_every: u64,
     #[arg(long, default_value_t = 16)]
     eval_meshes: usize,
     #[arg(long, default_value_t = 16)]
@@ -165,6 +159,35 @@ struct AeArgs {
     /// No progress bar (logs only), e.g. under CI.
     #[arg(long)]
     no_progress: bool,
+}
+
+/// The schedule's end, clipping and cadence, the same for both trainers (the length, warm-up
+/// and peak learning rate have per-trainer defaults).
+#[derive(Args)]
+struct PlanArgs {
+    /// The cosine schedule ends at lr x this.
+    #[arg(long, default_value_t = 0.1)]
+    min_lr_ratio: f64,
+    #[arg(long, default_value_t = 1.0)]
+    grad_clip: f64,
+    #[arg(long, default_value_t = 250)]
+    checkpoint_every: u64,
+    #[arg(long, default_value_t = 1000)]
+    eval_every: u64,
+}
+
+impl PlanArgs {
+    fn plan(&self, steps: u64, warmup_steps: u64, lr: f64) -> Plan {
+        Plan {
+            steps,
+            warmup_steps,
+            lr,
+            min_lr_ratio: self.min_lr_ratio,
+            grad_clip: self.grad_clip,
+            checkpoint_every: self.checkpoint_every,
+            eval_every: self.eval_every,
+        }
+    }
 }
 
 #[derive(Args)]
@@ -228,23 +251,16 @@ struct DitArgs {
     batch: usize,
     #[arg(long, default_value_t = 3e-4)]
     lr: f64,
+    #[command(flatten)]
+    plan: PlanArgs,
     #[arg(long, default_value_t = 500)]
     warmup: u64,
-    /// The cosine schedule ends at lr x this.
-    #[arg(long, default_value_t = 0.1)]
-    min_lr_ratio: f64,
     /// The paper trains the DiT without weight decay.
     #[arg(long, default_value_t = 0.0)]
     weight_decay: f64,
-    #[arg(long, default_value_t = 1.0)]
-    grad_clip: f64,
     /// AdamW for every parameter instead of Muon for the block matrices (the paper's choice).
     #[arg(long)]
     adamw: bool,
-    #[arg(long, default_value_t = 250)]
-    checkpoint_every: u64,
-    #[arg(long, default_value_t = 1000)]
-    eval_every: u64,
     /// Held-aside meshes of --eval-split (the first, by name).
     #[arg(long, default_value_t = 8)]
     eval_meshes: usize,
@@ -455,13 +471,7 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
         batch: args.batch,
         optim: OptimConfig { weight_decay: args.weight_decay, ..OptimConfig::default() },
         muon: !args.adamw,
-        lr: args.lr,
-        warmup_steps: args.warmup,
-        min_lr_ratio: args.min_lr_ratio,
-        steps: args.steps,
-        grad_clip: args.grad_clip,
-        checkpoint_every: args.checkpoint_every,
-        eval_every: args.eval_every,
+        plan: args.plan.plan(args.steps, args.warmup, args.lr),
         seed: args.seed,
     })
 }
@@ -496,14 +506,8 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
             max_padding: args.max_padding,
         },
         optim: OptimConfig { weight_decay: args.weight_decay, ..OptimConfig::default() },
-        lr: args.lr,
-        warmup_steps: args.warmup,
-        min_lr_ratio: args.min_lr_ratio,
-        steps: args.steps,
-        grad_clip: args.grad_clip,
+        plan: args.plan.plan(args.steps, args.warmup, args.lr),
         accumulate: args.accumulate,
-        checkpoint_every: args.checkpoint_every,
-        eval_every: args.eval_every,
         eval_folder_meshes: args.eval_meshes,
         eval_procedural: args.eval_procedural,
         eval_metric_samples: args.eval_samples,

@@ -9,18 +9,25 @@ use std::time::Instant;
 use candle_core::Var;
 use candle_core::backprop::GradStore;
 use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 use super::checkpoint::TrainState;
 use super::optim::{Optimizer, clip_grad_norm, learning_rate};
 
-/// When to stop, evaluate and checkpoint.
-#[derive(Debug, Clone, Copy)]
-pub struct Cadence {
+/// A run's length, learning-rate schedule (warm-up, then cosine), gradient clipping, and when
+/// it evaluates and checkpoints. Both trainers flatten it into their `train.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Plan {
     /// The schedule's length (the progress bar's total).
     pub steps: u64,
-    pub eval_every: u64,
+    pub warmup_steps: u64,
+    pub lr: f64,
+    /// The cosine ends at `lr` x this.
+    pub min_lr_ratio: f64,
+    pub grad_clip: f64,
     pub checkpoint_every: u64,
+    pub eval_every: u64,
 }
 
 /// A trainer, as the loop sees it.
@@ -31,7 +38,7 @@ pub trait Steps {
 
     /// Steps taken so far.
     fn step_index(&self) -> u64;
-    fn cadence(&self) -> Cadence;
+    fn plan(&self) -> &Plan;
     fn begin(&mut self) -> Result<Self::Session, TrainError>;
     /// One optimizer step (logged); returns the progress bar's message.
     fn train_step(&mut self, session: &mut Self::Session) -> Result<String, TrainError>;
@@ -55,15 +62,6 @@ impl SessionClock {
     }
 }
 
-/// The learning-rate schedule (warm-up, then cosine) and the gradient clipping of a run.
-pub struct Schedule {
-    pub steps: u64,
-    pub warmup_steps: u64,
-    pub lr: f64,
-    pub min_lr_ratio: f64,
-    pub grad_clip: f64,
-}
-
 /// The end of every optimizer step: refuse a non-finite loss, clip, take the scheduled
 /// learning rate, update, and count the step and the time. Returns (lr, gradient norm).
 pub fn update(
@@ -71,7 +69,7 @@ pub fn update(
     mut grads: GradStore,
     optimizer: &mut Optimizer,
     state: &mut TrainState,
-    schedule: &Schedule,
+    plan: &Plan,
     clock: &SessionClock,
 ) -> Result<(f64, f64), TrainError> {
     if !loss.is_finite() {
@@ -80,9 +78,8 @@ pub fn update(
             state.step
         )));
     }
-    let grad_norm = clip_grad_norm(&mut grads, &clock.vars, schedule.grad_clip)?;
-    let s = schedule;
-    let lr = learning_rate(state.step, s.warmup_steps, s.steps, s.lr, s.min_lr_ratio);
+    let grad_norm = clip_grad_norm(&mut grads, &clock.vars, plan.grad_clip)?;
+    let lr = learning_rate(state.step, plan.warmup_steps, plan.steps, plan.lr, plan.min_lr_ratio);
     optimizer.step(&grads, lr)?;
     state.step += 1;
     state.elapsed_s = clock.base_elapsed + clock.started.elapsed().as_secs_f64();
@@ -105,9 +102,12 @@ pub fn run<T: Steps>(
     stop_at: Option<u64>,
     progress: bool,
 ) -> Result<Outcome<T::Report>, TrainError> {
-    let cadence = trainer.cadence();
-    let end = stop_at.map_or(cadence.steps, |s| s.min(cadence.steps));
-    let bar = progress_bar(trainer.step_index(), cadence.steps, progress);
+    let (steps, eval_every, checkpoint_every) = {
+        let plan = trainer.plan();
+        (plan.steps, plan.eval_every.max(1), plan.checkpoint_every.max(1))
+    };
+    let end = stop_at.map_or(steps, |s| s.min(steps));
+    let bar = progress_bar(trainer.step_index(), steps, progress);
     let mut session = trainer.begin()?;
     let mut outcome = Outcome { interrupted: false, last_eval: None };
     while trainer.step_index() < end {
@@ -119,13 +119,13 @@ pub fn run<T: Steps>(
         let step = trainer.step_index();
         bar.set_position(step);
         bar.set_message(message);
-        if (step.is_multiple_of(cadence.eval_every.max(1)) || step == end)
+        if (step.is_multiple_of(eval_every) || step == end)
             && let Some(report) = bar.suspend(|| trainer.evaluate())?
         {
             bar.println(T::report_line(step, &report));
             outcome.last_eval = Some((step, report));
         }
-        if step.is_multiple_of(cadence.checkpoint_every.max(1)) {
+        if step.is_multiple_of(checkpoint_every) {
             trainer.save_checkpoint()?;
         }
     }

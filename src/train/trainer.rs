@@ -34,15 +34,10 @@ pub struct TrainConfig {
     pub eval_split: String,
     pub batch: BatchConfig,
     pub optim: OptimConfig,
-    pub lr: f64,
-    pub warmup_steps: u64,
-    pub min_lr_ratio: f64,
-    pub steps: u64,
-    pub grad_clip: f64,
+    #[serde(flatten)]
+    pub plan: run_loop::Plan,
     /// Batches whose gradients are summed into one optimizer step.
     pub accumulate: usize,
-    pub checkpoint_every: u64,
-    pub eval_every: u64,
     /// Held-aside meshes from the folder's eval split, and held-aside procedural shapes.
     pub eval_folder_meshes: usize,
     pub eval_procedural: usize,
@@ -111,7 +106,7 @@ impl Trainer {
         let mut cfg: TrainConfig =
             serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
         if let Some(steps) = steps {
-            cfg.steps = steps;
+            cfg.plan.steps = steps;
         }
         let mut trainer = Self::build(cfg, dir, device)?;
         trainer.state = checkpoint::restore(
@@ -258,12 +253,8 @@ impl run_loop::Steps for Trainer {
         self.state.step
     }
 
-    fn cadence(&self) -> run_loop::Cadence {
-        run_loop::Cadence {
-            steps: self.cfg.steps,
-            eval_every: self.cfg.eval_every,
-            checkpoint_every: self.cfg.checkpoint_every,
-        }
+    fn plan(&self) -> &run_loop::Plan {
+        &self.cfg.plan
     }
 
     fn begin(&mut self) -> Result<AeSession, TrainError> {
@@ -306,19 +297,12 @@ impl run_loop::Steps for Trainer {
             meshes += batch.samples.len();
         }
         let grads = grads.ok_or(TrainError::DataStopped)?;
-        let schedule = run_loop::Schedule {
-            steps: self.cfg.steps,
-            warmup_steps: self.cfg.warmup_steps,
-            lr: self.cfg.lr,
-            min_lr_ratio: self.cfg.min_lr_ratio,
-            grad_clip: self.cfg.grad_clip,
-        };
         let (lr, grad_norm) = run_loop::update(
             loss,
             grads,
             &mut self.optimizer,
             &mut self.state,
-            &schedule,
+            &self.cfg.plan,
             &session.clock,
         )?;
         let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();

@@ -16,6 +16,7 @@ use crate::diffusion::DitConfig;
 
 use self::evaluate::DitEvalOptions;
 use super::optim::OptimConfig;
+use super::run_loop;
 use cache::CacheSpec;
 
 /// Everything that defines a DiT run; saved as `train.json` in the run folder, so `--resume`
@@ -38,13 +39,8 @@ pub struct DitTrainConfig {
     pub optim: OptimConfig,
     /// Muon for the 2-D matrices of the transformer blocks (as the paper), else AdamW only.
     pub muon: bool,
-    pub lr: f64,
-    pub warmup_steps: u64,
-    pub min_lr_ratio: f64,
-    pub steps: u64,
-    pub grad_clip: f64,
-    pub checkpoint_every: u64,
-    pub eval_every: u64,
+    #[serde(flatten)]
+    pub plan: run_loop::Plan,
     /// Seed of the batches and the flow-matching noise (the cache has its own in `cache`).
     pub seed: u64,
 }

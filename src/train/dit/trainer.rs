@@ -111,7 +111,7 @@ impl DitTrainer {
         let mut cfg: DitTrainConfig =
             serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
         if let Some(steps) = steps {
-            cfg.steps = steps;
+            cfg.plan.steps = steps;
         }
         let autoencoder = load_autoencoder(&cfg, &device)?;
         let cache = match LatentCache::load(&dir.latent_cache())? {
@@ -298,12 +298,8 @@ impl run_loop::Steps for DitTrainer {
         self.state.step
     }
 
-    fn cadence(&self) -> run_loop::Cadence {
-        run_loop::Cadence {
-            steps: self.cfg.steps,
-            eval_every: self.cfg.eval_every,
-            checkpoint_every: self.cfg.checkpoint_every,
-        }
+    fn plan(&self) -> &run_loop::Plan {
+        &self.cfg.plan
     }
 
     fn begin(&mut self) -> Result<DitSession, TrainError> {
@@ -316,19 +312,12 @@ impl run_loop::Steps for DitTrainer {
         let loss_t = self.model.training_loss(&latents, &images, &mut rng)?;
         let loss = f64::from(loss_t.to_scalar::<f32>()?);
         let grads = loss_t.backward()?;
-        let schedule = run_loop::Schedule {
-            steps: self.cfg.steps,
-            warmup_steps: self.cfg.warmup_steps,
-            lr: self.cfg.lr,
-            min_lr_ratio: self.cfg.min_lr_ratio,
-            grad_clip: self.cfg.grad_clip,
-        };
         let (lr, grad_norm) = run_loop::update(
             loss,
             grads,
             &mut self.optimizer,
             &mut self.state,
-            &schedule,
+            &self.cfg.plan,
             &session.clock,
         )?;
         let samples = latents.dim(0)?;
