@@ -101,6 +101,8 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
     let a = &v["meshes"][0];
     // A cube of side 2 shifted by 0.1: the Hausdorff distance is exactly the shift.
     assert!((a["hausdorff"].as_f64().unwrap() - 0.1).abs() < 0.03, "{a}");
+    let figure = |key: &str| a[key].as_f64().unwrap();
+    assert!((figure("accuracy") + figure("completeness") - figure("chamfer")).abs() < 1e-9, "{a}");
     let failures: Vec<&str> =
         v["meshes"].as_array().unwrap().iter().filter_map(|m| m["failure"].as_str()).collect();
     assert_eq!(failures.len(), 2);

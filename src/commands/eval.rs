@@ -33,6 +33,8 @@ struct Row {
     name: String,
     chamfer: Option<f64>,
     hausdorff: Option<f64>,
+    accuracy: Option<f64>,
+    completeness: Option<f64>,
     failure: Option<String>,
 }
 
@@ -54,12 +56,16 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 name: r.name.clone(),
                 chamfer: Some(d.chamfer),
                 hausdorff: Some(d.hausdorff),
+                accuracy: Some(d.accuracy),
+                completeness: Some(d.completeness),
                 failure: None,
             },
             Err(e) => Row {
                 name: r.name.clone(),
                 chamfer: None,
                 hausdorff: None,
+                accuracy: None,
+                completeness: None,
                 failure: Some(e.clone()),
             },
         })
@@ -115,21 +121,37 @@ fn evaluate_pair(
 
 fn print_tables(rows: &[Row], s: &EvalSummary) {
     let mut table = super::table();
-    table.set_header(["mesh", "CD", "HD", "failure"]);
+    // Accuracy: prediction -> ground truth; completeness: ground truth -> prediction.
+    table.set_header(["mesh", "CD", "HD", "acc.", "compl.", "failure"]);
     let fmt = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
     for r in rows {
         table.add_row([
             r.name.clone(),
             fmt(r.chamfer),
             fmt(r.hausdorff),
+            fmt(r.accuracy),
+            fmt(r.completeness),
             r.failure.clone().unwrap_or_default(),
         ]);
     }
     println!("{table}");
     let mut sum = super::table();
-    sum.set_header(["set", "CD", "HD"]);
-    sum.add_row(["mean".to_string(), fmt(s.chamfer_mean), fmt(s.hausdorff_mean)]);
-    sum.add_row(["median".to_string(), fmt(s.chamfer_median), fmt(s.hausdorff_median)]);
+    sum.set_header(["set", "CD", "HD", "acc.", "compl."]);
+    sum.add_row([
+        "mean".to_string(),
+        fmt(s.chamfer_mean),
+        fmt(s.hausdorff_mean),
+        fmt(s.accuracy_mean),
+        fmt(s.completeness_mean),
+    ]);
+    let none = String::new();
+    sum.add_row([
+        "median".to_string(),
+        fmt(s.chamfer_median),
+        fmt(s.hausdorff_median),
+        none.clone(),
+        none,
+    ]);
     println!("{sum}");
     println!("meshes: {}, evaluated: {}, failures: {}", s.count, s.evaluated, s.failures);
 }

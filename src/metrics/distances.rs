@@ -23,20 +23,33 @@ impl Default for MetricOptions {
 }
 
 /// Chamfer distance (sum of both mean nearest-neighbour distances) and Hausdorff distance
-/// (larger of both maxima), plain Euclidean, in the ground truth's normalized frame.
+/// (larger of both maxima), plain Euclidean, in the ground truth's normalized frame; and the
+/// Chamfer distance's two halves, which tell wrong surface from missing surface.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Distances {
     pub chamfer: f64,
     pub hausdorff: f64,
+    /// Mean distance from the prediction to the ground truth: high when the prediction has
+    /// surface where the ground truth has none.
+    pub accuracy: f64,
+    /// Mean distance from the ground truth to the prediction: high when the prediction misses
+    /// part of the ground truth (an early end of mesh, say).
+    pub completeness: f64,
 }
 
 impl Distances {
     /// The result when there is nothing to match: no point is near an empty set.
-    const INFINITE: Self = Self { chamfer: f64::INFINITY, hausdorff: f64::INFINITY };
+    const INFINITE: Self = Self {
+        chamfer: f64::INFINITY,
+        hausdorff: f64::INFINITY,
+        accuracy: f64::INFINITY,
+        completeness: f64::INFINITY,
+    };
 }
 
 /// CD = mean_a d(a, B) + mean_b d(b, A), HD = max(max_a d(a, B), max_b d(b, A)), with d the
-/// Euclidean distance to the nearest point of the other set.
+/// Euclidean distance to the nearest point of the other set; `a` is the prediction's samples
+/// and `b` the ground truth's (accuracy is mean_a d(a, B), completeness mean_b d(b, A)).
 ///
 /// When either set is empty or holds a non-finite coordinate, both distances are infinite:
 /// there is no meaningful nearest point, and an infinite figure cannot pass for a good one.
@@ -46,9 +59,12 @@ pub fn point_set_distances(a: &[[f32; 3]], b: &[[f32; 3]]) -> Distances {
         return Distances::INFINITE;
     }
     match (directed(a, b), directed(b, a)) {
-        (Some((mean_ab, max_ab)), Some((mean_ba, max_ba))) => {
-            Distances { chamfer: mean_ab + mean_ba, hausdorff: max_ab.max(max_ba) }
-        }
+        (Some((mean_ab, max_ab)), Some((mean_ba, max_ba))) => Distances {
+            chamfer: mean_ab + mean_ba,
+            hausdorff: max_ab.max(max_ba),
+            accuracy: mean_ab,
+            completeness: mean_ba,
+        },
         // Only a set past the tree's u32 item indices (2^32 points) fails to build.
         _ => Distances::INFINITE,
     }
@@ -146,7 +162,12 @@ mod tests {
         let d = point_set_distances(&a, &b);
         assert!((d.chamfer - (0.5 + 7.0 / 3.0)).abs() < 1e-12, "{d:?}");
         assert_eq!(d.hausdorff, 4.0);
-        assert_eq!(point_set_distances(&b, &a), d);
+        assert_eq!(d.accuracy, 0.5);
+        assert!((d.completeness - 7.0 / 3.0).abs() < 1e-12, "{d:?}");
+        // Swapping the sets swaps the halves and nothing else.
+        let swapped = point_set_distances(&b, &a);
+        assert_eq!((swapped.chamfer, swapped.hausdorff), (d.chamfer, d.hausdorff));
+        assert_eq!((swapped.accuracy, swapped.completeness), (d.completeness, d.accuracy));
         // A 3-4-5 triangle: one pair at distance 5 each way.
         let d = point_set_distances(&[[3.0, 4.0, 0.0]], &[[0.0; 3]]);
         assert_eq!((d.chamfer, d.hausdorff), (10.0, 5.0));

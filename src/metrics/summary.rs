@@ -26,6 +26,9 @@ pub struct EvalSummary {
     pub chamfer_median: Option<f64>,
     pub hausdorff_mean: Option<f64>,
     pub hausdorff_median: Option<f64>,
+    /// Means of the Chamfer distance's halves (see [`Distances`]).
+    pub accuracy_mean: Option<f64>,
+    pub completeness_mean: Option<f64>,
 }
 
 pub fn summarize(records: &[EvalRecord]) -> EvalSummary {
@@ -36,6 +39,8 @@ pub fn summarize(records: &[EvalRecord]) -> EvalSummary {
         .collect();
     let chamfer: Vec<f64> = ok.iter().map(|d| d.chamfer).collect();
     let hausdorff: Vec<f64> = ok.iter().map(|d| d.hausdorff).collect();
+    let accuracy: Vec<f64> = ok.iter().map(|d| d.accuracy).collect();
+    let completeness: Vec<f64> = ok.iter().map(|d| d.completeness).collect();
     EvalSummary {
         count: records.len(),
         evaluated: ok.len(),
@@ -45,6 +50,8 @@ pub fn summarize(records: &[EvalRecord]) -> EvalSummary {
         chamfer_median: median(chamfer),
         hausdorff_mean: mean(&hausdorff),
         hausdorff_median: median(hausdorff),
+        accuracy_mean: mean(&accuracy),
+        completeness_mean: mean(&completeness),
     }
 }
 
@@ -67,8 +74,13 @@ fn median(mut xs: Vec<f64>) -> Option<f64> {
 mod tests {
     use super::*;
 
+    /// A record whose Chamfer distance splits 1 : 3 into accuracy and completeness.
     fn ok(name: &str, chamfer: f64, hausdorff: f64) -> EvalRecord {
-        EvalRecord { name: name.into(), result: Ok(Distances { chamfer, hausdorff }) }
+        let (accuracy, completeness) = (chamfer / 4.0, 3.0 * chamfer / 4.0);
+        EvalRecord {
+            name: name.into(),
+            result: Ok(Distances { chamfer, hausdorff, accuracy, completeness }),
+        }
     }
 
     fn failed(name: &str, why: &str) -> EvalRecord {
@@ -93,6 +105,8 @@ mod tests {
         assert!(close(s.chamfer_median, 0.25)); // (0.2 + 0.3) / 2
         assert!(close(s.hausdorff_mean, 0.35));
         assert!(close(s.hausdorff_median, 0.35)); // (0.3 + 0.4) / 2
+        assert!(close(s.accuracy_mean, 0.0625));
+        assert!(close(s.completeness_mean, 0.1875));
     }
 
     #[test]
@@ -107,6 +121,7 @@ mod tests {
         assert_eq!((s.count, s.evaluated, s.failures), (1, 0, 1));
         assert_eq!((s.chamfer_mean, s.chamfer_median), (None, None));
         assert_eq!((s.hausdorff_mean, s.hausdorff_median), (None, None));
+        assert_eq!((s.accuracy_mean, s.completeness_mean), (None, None));
         let empty = summarize(&[]);
         assert_eq!((empty.count, empty.chamfer_mean), (0, None));
         let json = serde_json::to_value(&s).unwrap();
