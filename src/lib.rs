@@ -5,6 +5,7 @@
 //! (normalization, ZYX order, tokens, metrics) are those of `DESIGN.md`.
 
 pub mod baseline;
+pub mod candidates;
 pub mod diffusion;
 pub mod engine;
 pub mod mesh;

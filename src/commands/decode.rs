@@ -9,6 +9,7 @@ use anyhow::Context;
 use candle_core::Tensor;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use meshstream::candidates::best_of;
 use meshstream::mesh::{Format, Normalization, write_mesh_file};
 use meshstream::model::{DEFAULT_FACE_BEAM, FaceModel, GenerateOptions, SamplingParams, generate};
 use meshstream::tokenize::{Quantizer, detokenize};
@@ -45,13 +46,22 @@ pub fn progress(bar: ProgressBar, template: &str) -> ProgressBar {
     bar
 }
 
-/// Decodes `latents` (K, latent_dim) into faces, takes them to the caller's frame with
-/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not
-/// 0. Reports what it wrote, timed from `start`.
+/// The input points of a reconstruction (normalized frame), and how many candidate meshes to
+/// decode and judge against them.
+pub struct Candidates<'a> {
+    pub points: &'a [[f32; 3]],
+    pub count: usize,
+}
+
+/// Decodes `latents` (K, latent_dim) into faces (the candidate closest to the input points
+/// when there are `candidates`), takes them to the caller's frame with `normalization`, and
+/// writes the mesh; `seed` drives sampling when the temperature is not 0. Reports what it
+/// wrote, timed from `start`.
 pub fn decode_to_file(
     model: &FaceModel,
     latents: &Tensor,
     args: &DecodeArgs,
+    candidates: Option<Candidates>,
     seed: u64,
     normalization: Normalization,
     start: Instant,
@@ -70,10 +80,16 @@ pub fn decode_to_file(
     };
     let bar =
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
-    let (faces, reason) = generate(model, latents, options, |_| {
-        bar.inc(1);
-        ControlFlow::Continue(())
-    })?;
+    let (faces, reason) = match candidates {
+        Some(c) => {
+            let best = best_of(model, latents, &options, c.count, c.points, || bar.inc(1))?;
+            (best.faces, best.finish)
+        }
+        None => generate(model, latents, options, |_| {
+            bar.inc(1);
+            ControlFlow::Continue(())
+        })?,
+    };
     bar.finish_and_clear();
     let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let mesh = normalization.invert_mesh(&detokenize(&faces, q));

@@ -72,5 +72,6 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     let latents = diffusion.latents(&run)?;
-    decode_to_file(&model, &latents, &args.decode, args.seed, Normalization::identity(), start)
+    let frame = Normalization::identity();
+    decode_to_file(&model, &latents, &args.decode, None, args.seed, frame, start)
 }

@@ -3,9 +3,10 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
+use meshstream::candidates::MAX_CANDIDATES;
 use meshstream::model::{checkpoint, parse_device};
 
-use super::decode::{DecodeArgs, decode_to_file};
+use super::decode::{Candidates, DecodeArgs, decode_to_file};
 use super::input_points;
 
 #[derive(Args)]
@@ -24,6 +25,10 @@ pub struct ReconstructArgs {
     /// cpu or cuda:N (with --features cuda).
     #[arg(long, default_value = "cpu")]
     device: String,
+    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
+    /// closest to the input points: better meshes for about N times the decoding work.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=MAX_CANDIDATES as u64))]
+    candidates: u64,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -34,5 +39,14 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let (cloud, normalization) = input_points(&args.input, cfg.num_points, args.seed)?;
     let start = Instant::now();
     let latents = model.encode_point_cloud(&cloud)?;
-    decode_to_file(&model, &latents, &args.decode, args.seed, normalization, start)
+    let candidates = Candidates { points: &cloud.vertices, count: args.candidates as usize };
+    decode_to_file(
+        &model,
+        &latents,
+        &args.decode,
+        Some(candidates),
+        args.seed,
+        normalization,
+        start,
+    )
 }
