@@ -34,26 +34,31 @@ pub struct Candidate {
     pub finish: FinishReason,
 }
 
-/// The options of `n` candidates: the first is `base` itself; the others sample with seeds
+/// The sampling of `n` candidates: the first is `base` itself; the others sample with seeds
 /// after `base`'s, at `base`'s temperature, or at [`CANDIDATE_TEMPERATURE`] when `base` is
 /// greedy.
-pub fn candidate_options(base: &GenerateOptions, n: usize) -> Vec<GenerateOptions> {
-    let temperature = match base.sampling.temperature {
+pub fn candidate_sampling(base: &SamplingParams, n: usize) -> Vec<SamplingParams> {
+    let temperature = match base.temperature {
         0.0 => CANDIDATE_TEMPERATURE,
         t => t,
     };
     (0..n.max(1))
         .map(|i| match i {
             0 => base.clone(),
-            i => GenerateOptions {
-                sampling: SamplingParams {
-                    temperature,
-                    seed: base.sampling.seed.wrapping_add(i as u64),
-                    ..base.sampling.clone()
-                },
+            i => SamplingParams {
+                temperature,
+                seed: base.seed.wrapping_add(i as u64),
                 ..base.clone()
             },
         })
+        .collect()
+}
+
+/// The options of `n` candidates: `base` with each of [`candidate_sampling`].
+pub fn candidate_options(base: &GenerateOptions, n: usize) -> Vec<GenerateOptions> {
+    candidate_sampling(&base.sampling, n)
+        .into_iter()
+        .map(|sampling| GenerateOptions { sampling, ..base.clone() })
         .collect()
 }
 

@@ -98,7 +98,7 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
     let upload =
         write_mesh(&meshstream::mesh::primitives::cuboid([2.0, 1.0, 1.0]), Format::Ply).unwrap();
     let r = client()
-        .post(server.url("/reconstruct?max_faces=20&format=stl&face_beam=2"))
+        .post(server.url("/reconstruct?max_faces=20&format=stl&face_beam=2&candidates=3"))
         .header("content-type", "application/ply")
         .body(upload)
         .send()
@@ -236,6 +236,20 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (
             json,
             format!(r#"{{"points": {three}, "face_beam": 33}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "candidates": 0}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "candidates": 17}}"#).into_bytes(),
             "",
             422,
             "invalid_input",

@@ -12,6 +12,7 @@
 //! dropped [`RequestStream`] cancels its request before the next step.
 
 mod admission;
+mod best_of;
 mod config;
 mod diffusion_stage;
 mod error;
@@ -27,6 +28,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc;
 
+use crate::candidates::MAX_CANDIDATES;
 use crate::diffusion::{DiffusionModel, DitConfig};
 use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
 use crate::tokenize::Quantizer;
@@ -147,8 +149,19 @@ impl Engine {
     }
 
     /// Queues a request; its faces arrive on the returned stream. Refused at once when the
-    /// queue is full or the engine is shutting down.
+    /// queue is full or the engine is shutting down. A request for several candidates queues
+    /// one request per candidate and needs a tokio runtime (see `best_of`).
     pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
+        match request.options.candidates.unwrap_or(1) {
+            1 => self.submit_one(request),
+            n => {
+                self.check(&request).inspect_err(|e| self.shared.metrics.reject(e.code()))?;
+                best_of::submit(self, request, n)
+            }
+        }
+    }
+
+    fn submit_one(&self, request: Request) -> Result<RequestStream, EngineError> {
         let metrics = &self.shared.metrics;
         let faces = self.check(&request).inspect_err(|e| metrics.reject(e.code()))?;
         let (tx, rx) = mpsc::channel(self.shared.config.stream_buffer);
@@ -196,6 +209,17 @@ impl Engine {
             return Err(EngineError::InvalidInput(format!(
                 "face_beam must be between 1 and {MAX_FACE_BEAM}, got {beam}"
             )));
+        }
+        let candidates = request.options.candidates.unwrap_or(1);
+        if !(1..=MAX_CANDIDATES).contains(&candidates) {
+            return Err(EngineError::InvalidInput(format!(
+                "candidates must be between 1 and {MAX_CANDIDATES}, got {candidates}"
+            )));
+        }
+        if candidates > 1 && matches!(request.conditioning, Conditioning::Image(_)) {
+            return Err(EngineError::InvalidInput(
+                "candidates are judged against input points: an image request takes 1".into(),
+            ));
         }
         let cfg = &self.model_config;
         match &request.conditioning {

@@ -87,6 +87,9 @@ pub struct DecodeOptions {
     /// Partial faces kept by greedy decoding (`GenerateOptions::face_beam`); `None`: the
     /// model's default.
     pub face_beam: Option<usize>,
+    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
+    /// closest to the input points; points requests only. `None`: 1.
+    pub candidates: Option<usize>,
 }
 
 #[derive(Debug, Clone)]

@@ -1,9 +1,11 @@
+use std::ops::ControlFlow;
 use std::time::{Duration, Instant};
 
 use super::*;
+use crate::candidates::{MAX_CANDIDATES, candidate_options, input_distance};
 use crate::mesh::primitives::uv_sphere;
 use crate::model::testing::random_model;
-use crate::model::{GenerateOptions, Generation, step_generations};
+use crate::model::{GenerateOptions, Generation, generate, step_generations};
 use crate::tokenize::FaceToken;
 
 fn engine(config: EngineConfig) -> (Engine, FaceModel) {
@@ -180,7 +182,43 @@ fn invalid_options_are_refused_before_queueing() {
         r.options.face_beam = Some(beam);
         assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
     }
+    r.options.face_beam = None;
+    for candidates in [0, MAX_CANDIDATES + 1] {
+        r.options.candidates = Some(candidates);
+        assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    }
+    // Best-of-N runs a task that picks the winner: outside a runtime it has nowhere to run.
+    r.options.candidates = Some(2);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
     assert_eq!(engine.status().waiting, 0);
+}
+
+#[test]
+fn a_best_of_request_streams_the_candidate_closest_to_its_points() {
+    let (engine, model) = engine(EngineConfig::default());
+    let mut r = request(&model, 2, 15);
+    r.options.candidates = Some(3);
+    let Conditioning::Points(p) = &r.conditioning else { unreachable!() };
+    let latents = scheduler_encode(&model, p);
+    let base = GenerateOptions { max_faces: 15, ..GenerateOptions::default() };
+    let alone: Vec<Vec<FaceToken>> = candidate_options(&base, 3)
+        .into_iter()
+        .map(|o| generate(&model, &latents, o, |_| ControlFlow::Continue(())).unwrap().0)
+        .collect();
+    let distances: Vec<f64> =
+        alone.iter().map(|f| input_distance(f, engine.quantizer, &p.points, 0)).collect();
+    let best = (0..3).min_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap();
+    let done = runtime().block_on(async { engine.submit(r).unwrap().collect().await.unwrap() });
+    assert_eq!(done.tokens, alone[best], "distances {distances:?}");
+    assert_eq!(done.summary.faces, done.tokens.len());
+    // The candidates ran as three requests of the engine.
+    let text = engine.metrics().render();
+    let finished: f64 = text
+        .lines()
+        .filter(|l| l.starts_with("meshstream_requests_finished_total{"))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum();
+    assert_eq!(finished, 3.0, "{text}");
 }
 
 #[test]
@@ -329,6 +367,9 @@ fn image_requests_are_checked_and_refused_without_an_image_model() {
     assert!(matches!(plain.submit(image_request(0, 3, 1.0, 5)), Err(EngineError::Unsupported(_))));
     let (engine, _, _) =
         image_engine(EngineConfig { max_diffusion_steps: 10, ..EngineConfig::default() });
+    let mut best_of_image = image_request(0, 3, 1.0, 5);
+    best_of_image.options.candidates = Some(2);
+    assert!(matches!(engine.submit(best_of_image), Err(EngineError::InvalidInput(_))));
     for (steps, guidance) in [(0, 1.0), (11, 1.0), (3, -0.5), (3, f32::NAN), (3, 25.0)] {
         let r = engine.submit(image_request(0, steps, guidance, 5));
         assert!(

@@ -158,6 +158,7 @@ impl GrpcService {
             top_k: options.top_k.map(|k| k as usize),
             top_p: options.top_p,
             face_beam: options.face_beam.map(|n| n as usize),
+            candidates: options.candidates.map(|n| n as usize),
             seed: options.seed,
             format: None,
         };

@@ -6,6 +6,7 @@ use axum::http::header::CONTENT_TYPE;
 use serde::Deserialize;
 use utoipa::{IntoParams, ToSchema};
 
+use crate::candidates::MAX_CANDIDATES;
 use crate::engine::DecodeOptions;
 use crate::mesh::{Format, Mesh, ReadLimits, read_mesh};
 use crate::model::{MAX_FACE_BEAM, SamplingParams};
@@ -25,6 +26,10 @@ pub struct ReconstructOptions {
     /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
     /// at most 32); 1 picks coordinate by coordinate.
     pub face_beam: Option<usize>,
+    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
+    /// closest to the input points (default 1, at most 16). With more than 1, every face
+    /// arrives at the end.
+    pub candidates: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,
     /// glb (default), obj, ply or stl.
@@ -44,6 +49,7 @@ pub struct PointsBody {
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,
     pub face_beam: Option<usize>,
+    pub candidates: Option<usize>,
     pub seed: Option<u64>,
     pub format: Option<String>,
 }
@@ -67,7 +73,7 @@ impl ReconstructOptions {
     pub fn checked(self, input: Mesh) -> Result<ParsedRequest, ApiError> {
         let format = output_format(self.format.as_deref())?;
         let seed = self.seed.unwrap_or(0);
-        let decode = decode_options(
+        let mut decode = decode_options(
             self.max_faces,
             self.temperature,
             self.top_k,
@@ -75,6 +81,14 @@ impl ReconstructOptions {
             self.face_beam,
             seed,
         )?;
+        if let Some(n) = self.candidates
+            && !(1..=MAX_CANDIDATES).contains(&n)
+        {
+            return Err(ApiError::invalid(format!(
+                "candidates {n} must be between 1 and {MAX_CANDIDATES}"
+            )));
+        }
+        decode.candidates = self.candidates;
         Ok(ParsedRequest { input, decode, seed, format })
     }
 }
@@ -107,7 +121,7 @@ pub fn decode_options(
             "face_beam {beam} must be between 1 and {MAX_FACE_BEAM}"
         )));
     }
-    Ok(DecodeOptions { max_faces, sampling, face_beam })
+    Ok(DecodeOptions { max_faces, sampling, face_beam, candidates: None })
 }
 
 /// The request's media type, lower case, without parameters ("" when absent).
@@ -213,6 +227,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         top_k: b.top_k,
         top_p: b.top_p,
         face_beam: b.face_beam,
+        candidates: b.candidates,
         seed: b.seed,
         format: b.format,
     };

@@ -1,0 +1,102 @@
+//! Best-of-N requests (`DecodeOptions::candidates`): the candidates run as ordinary requests,
+//! batched with everything else, and a task streams the one closest to the input points once
+//! all have finished (see `crate::candidates`). Its faces therefore arrive together at the
+//! end, not one by one.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use futures_util::future::join_all;
+use tokio::sync::mpsc;
+
+use crate::candidates::{candidate_sampling, input_distance};
+use crate::tokenize::{Quantizer, face_positions};
+
+use super::{
+    Completed, Conditioning, Engine, EngineError, Event, Request, RequestStream, StreamedFace,
+};
+
+/// Submits `n` candidates of `request` (a points request, checked by the caller) and returns
+/// the stream of the one that fits the input points best. Refused as a whole when any
+/// candidate is (the others are then cancelled). Needs a tokio runtime for its task.
+pub(super) fn submit(
+    engine: &Engine,
+    request: Request,
+    n: usize,
+) -> Result<RequestStream, EngineError> {
+    let Conditioning::Points(prepared) = &request.conditioning else {
+        return Err(EngineError::InvalidInput(
+            "candidates are judged against input points: an image request takes 1".into(),
+        ));
+    };
+    let runtime = tokio::runtime::Handle::try_current()
+        .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
+    let points: Arc<[[f32; 3]]> = prepared.points.clone().into();
+    let normalization = prepared.normalization;
+    let seed = request.options.sampling.seed;
+    let started = Instant::now();
+    let candidates = candidate_sampling(&request.options.sampling, n)
+        .into_iter()
+        .enumerate()
+        .map(|(i, sampling)| {
+            let mut candidate = request.clone();
+            candidate.id = format!("{}/candidate-{i}", request.id);
+            candidate.options.sampling = sampling;
+            candidate.options.candidates = None;
+            engine.submit_one(candidate)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let (tx, rx) = mpsc::channel(engine.shared.config.stream_buffer);
+    let q = engine.quantizer;
+    runtime.spawn(async move {
+        let finished = tokio::select! {
+            all = join_all(candidates.into_iter().map(RequestStream::collect)) => all,
+            // The client left: dropping the candidates' streams cancels them.
+            () = tx.closed() => return,
+        };
+        let event = match pick(finished, q, &points, seed) {
+            Ok(mut best) => {
+                for (index, &token) in best.tokens.iter().enumerate() {
+                    let vertices = face_positions(&token, q).map(|p| normalization.invert(p));
+                    let face = StreamedFace { index, token, vertices };
+                    if tx.send(Event::Face(face)).await.is_err() {
+                        return;
+                    }
+                }
+                // The request as the client saw it: every face came at the end.
+                best.summary.total = started.elapsed();
+                best.summary.time_to_first_face = Some(best.summary.total);
+                Event::Finished(best.summary)
+            }
+            Err(e) => Event::Failed(e),
+        };
+        let _ = tx.send(event).await;
+    });
+    Ok(RequestStream::new(request.id, rx, normalization, q))
+}
+
+/// The finished candidate closest to `points` (the first on ties); the first error when none
+/// finished.
+fn pick(
+    finished: Vec<Result<Completed, EngineError>>,
+    q: Quantizer,
+    points: &[[f32; 3]],
+    seed: u64,
+) -> Result<Completed, EngineError> {
+    let mut best: Option<(f64, Completed)> = None;
+    let mut first_error = None;
+    for result in finished {
+        match result {
+            Ok(c) => {
+                let d = input_distance(&c.tokens, q, points, seed);
+                if best.as_ref().is_none_or(|(best_d, _)| d < *best_d) {
+                    best = Some((d, c));
+                }
+            }
+            Err(e) => {
+                first_error.get_or_insert(e);
+            }
+        }
+    }
+    best.map(|(_, c)| c).ok_or_else(|| first_error.unwrap_or(EngineError::Stopped))
+}
