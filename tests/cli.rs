@@ -169,3 +169,23 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("decoding") && !err.contains("panicked"), "{err}");
 }
+
+#[test]
+fn a_reader_that_goes_away_ends_the_output_without_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    write_mesh_file(&uv_sphere(1.0, 16, 8), &dir.path().join("ball.obj"), None).unwrap();
+    for args in [vec!["stats", path(dir.path())], vec!["stats", path(dir.path()), "--json"]] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+            .args(&args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Close the read end before the first line is written (`meshstream stats | head -0`).
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+    }
+}

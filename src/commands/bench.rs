@@ -12,6 +12,8 @@ use meshstream::metrics::{MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
 use meshstream::tokenize::{Quantizer, tokenize_mesh};
 
+use super::out;
+
 #[derive(Subcommand)]
 pub enum BenchCommand {
     /// Parsing, tokenization, farthest point sampling and evaluation.
@@ -104,7 +106,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.1} pairs/s", 1.0 / t.as_secs_f64()),
     ]);
-    println!("{table}");
+    out(&table)?;
     Ok(())
 }
 
@@ -126,6 +128,6 @@ fn bench_render(budget: Duration) -> anyhow::Result<()> {
             ]);
         }
     }
-    println!("{table}");
+    out(&table)?;
     Ok(())
 }

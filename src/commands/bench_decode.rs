@@ -13,6 +13,8 @@ use meshstream::model::{
     Generation, SamplingParams, checkpoint, parse_device, step_generations,
 };
 
+use super::out;
+
 #[derive(clap::Args, Debug, Clone)]
 pub struct DecodeBenchArgs {
     /// Model preset (random weights).
@@ -104,12 +106,12 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
     // Random weights: the position limit only has to cover the benchmark.
     cfg.max_faces = cfg.max_faces.max(longest);
     let (model, baseline) = random_weights(&cfg, &device).context("building the models")?;
-    println!(
+    out(format_args!(
         "preset {} ({:.2}M parameters), {} threads, random weights, greedy",
         args.preset,
         cfg.parameter_count() as f64 / 1e6,
         candle_core::utils::get_num_threads()
-    );
+    ))?;
 
     // Encoding: FPS on the CPU, then the encoder.
     // Points on a unit sphere; their positions double as normals (random weights, so only
@@ -195,6 +197,6 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
             ),
         ]);
     }
-    println!("{table}");
+    out(&table)?;
     Ok(())
 }

@@ -21,6 +21,8 @@ use rand_chacha::ChaCha8Rng;
 
 use meshstream::server::ImageServeConfig;
 
+use super::out;
+
 use super::{image_model_dir, load_image_model};
 
 #[derive(Args)]
@@ -81,7 +83,7 @@ pub fn run(args: &DiffusionBenchArgs) -> anyhow::Result<()> {
             ]);
         }
     }
-    println!("One Euler step (guidance 1 runs the conditional pass only):\n{steps}\n");
+    out(format_args!("One Euler step (guidance 1 runs the conditional pass only):\n{steps}\n"))?;
 
     let mut requests = super::table();
     requests.set_header([
@@ -106,10 +108,10 @@ pub fn run(args: &DiffusionBenchArgs) -> anyhow::Result<()> {
     }
     engine.shutdown(Duration::from_secs(1));
     engine.join();
-    println!(
+    out(format_args!(
         "Image requests through the engine ({} steps, guidance {}, at most {} faces, greedy):\n{requests}",
         args.steps, args.guidance, args.max_faces
-    );
+    ))?;
     Ok(())
 }
 

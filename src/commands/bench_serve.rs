@@ -17,6 +17,8 @@ use meshstream::server::proto::{
 };
 use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 
+use super::out;
+
 #[derive(Args)]
 pub struct ServeBenchArgs {
     /// Model folder.
@@ -126,7 +128,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         }
         let _ = stop.send(());
         server.await??;
-        println!("{table}");
+        out(&table)?;
         anyhow::Ok(())
     })
 }

@@ -6,6 +6,8 @@ use meshstream::mesh::mesh_files_in;
 use meshstream::metrics::{EvalRecord, EvalSummary, MetricOptions, mesh_distances, summarize};
 use serde::Serialize;
 
+use super::out;
+
 use super::{display_name, load_mesh};
 
 #[derive(Args)]
@@ -71,10 +73,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         })
         .collect();
     if args.json {
-        let out = serde_json::json!({ "meshes": rows, "summary": summary });
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        let report = serde_json::json!({ "meshes": rows, "summary": summary });
+        out(serde_json::to_string_pretty(&report)?)?;
     } else {
-        print_tables(&rows, &summary);
+        print_tables(&rows, &summary)?;
     }
     Ok(())
 }
@@ -119,7 +121,7 @@ fn evaluate_pair(
     mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())
 }
 
-fn print_tables(rows: &[Row], s: &EvalSummary) {
+fn print_tables(rows: &[Row], s: &EvalSummary) -> anyhow::Result<()> {
     let mut table = super::table();
     // Accuracy: prediction -> ground truth; completeness: ground truth -> prediction.
     table.set_header(["mesh", "CD", "HD", "acc.", "compl.", "failure"]);
@@ -134,7 +136,7 @@ fn print_tables(rows: &[Row], s: &EvalSummary) {
             r.failure.clone().unwrap_or_default(),
         ]);
     }
-    println!("{table}");
+    out(&table)?;
     let mut sum = super::table();
     sum.set_header(["set", "CD", "HD", "acc.", "compl."]);
     sum.add_row([
@@ -152,6 +154,7 @@ fn print_tables(rows: &[Row], s: &EvalSummary) {
         none.clone(),
         none,
     ]);
-    println!("{sum}");
-    println!("meshes: {}, evaluated: {}, failures: {}", s.count, s.evaluated, s.failures);
+    out(&sum)?;
+    out(format_args!("meshes: {}, evaluated: {}, failures: {}", s.count, s.evaluated, s.failures))?;
+    Ok(())
 }

@@ -22,6 +22,17 @@ use candle_core::Device;
 use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
 use meshstream::mesh::{Mesh, Normalization, ReadLimits, encoder_points, read_mesh_file};
 
+/// Writes one line of results to stdout. A reader that has gone away (`meshstream eval | head`)
+/// is not an error, as for other Unix tools: the rest of the output has nowhere to go.
+/// (`println!` would panic.)
+pub fn out(line: impl std::fmt::Display) -> anyhow::Result<()> {
+    use std::io::Write;
+    match writeln!(std::io::stdout().lock(), "{line}") {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e).context("writing to stdout"),
+        _ => Ok(()),
+    }
+}
+
 /// Reads a mesh with the default limits, naming the file in the error.
 pub fn load_mesh(path: &Path) -> anyhow::Result<Mesh> {
     read_mesh_file(path, &ReadLimits::default())

@@ -11,6 +11,8 @@ use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 use tracing_subscriber::EnvFilter;
 
+use super::out;
+
 use super::{image_model_dir, load_image_model};
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -158,11 +160,14 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         let listeners = Listeners::bind(&serve_config).await?;
         // Tests and scripts read the ports from this line.
         let addr = |a: Option<SocketAddr>| a.map_or_else(|| "?".into(), |a| a.to_string());
-        println!(
+        let listening = format!(
             "meshstream listening: http={} grpc={}",
             addr(listeners.http_addr()),
             addr(listeners.grpc_addr())
         );
+        if let Err(e) = out(&listening) {
+            tracing::warn!("{listening} (not on stdout: {e:#})");
+        }
         serve(engine, serve_config, listeners, termination()).await
     })?;
     Ok(())

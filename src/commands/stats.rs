@@ -7,6 +7,8 @@ use meshstream::mesh::expand_mesh_paths;
 use meshstream::tokenize::{Quantizer, sequence_stats, tokenize_mesh};
 use serde::Serialize;
 
+use super::out;
+
 use super::{display_name, load_mesh};
 
 #[derive(Args)]
@@ -81,17 +83,17 @@ pub fn run(args: &StatsArgs) -> anyhow::Result<()> {
     }
     let summary = summarize(&rows, failed);
     if args.json {
-        let out = if args.summary {
+        let report = if args.summary {
             serde_json::json!({ "summary": summary })
         } else {
             serde_json::json!({ "meshes": rows, "summary": summary })
         };
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        out(serde_json::to_string_pretty(&report)?)?;
     } else {
         if !args.summary {
-            println!("{}", rows_table(&rows));
+            out(rows_table(&rows))?;
         }
-        print_summary(&summary);
+        print_summary(&summary)?;
     }
     Ok(())
 }
@@ -168,7 +170,7 @@ fn rows_table(rows: &[MeshStats]) -> Table {
     table
 }
 
-fn print_summary(s: &Summary) {
+fn print_summary(s: &Summary) -> anyhow::Result<()> {
     let opt = |v: Option<usize>| v.map_or_else(|| "-".to_string(), |v| v.to_string());
     let mut table = super::table();
     table.set_header(["set", "value"]);
@@ -191,8 +193,9 @@ fn print_summary(s: &Summary) {
     for (label, n) in &s.histogram {
         table.add_row([format!("meshes with {label} faces"), n.to_string()]);
     }
-    println!("{table}");
+    out(&table)?;
     for f in &s.failed {
         eprintln!("unreadable: {f}");
     }
+    Ok(())
 }
