@@ -19,9 +19,12 @@ use super::batch::{SampleConfig, TrainingSample, prepare_sample};
 use super::dataset::FolderData;
 use super::procedural::ProceduralShapes;
 
-/// A fixed set of meshes with their (unaugmented) samples.
+/// A fixed set of meshes with their (unaugmented) samples: the folder's first, then the
+/// procedural shapes.
 pub struct EvalSet {
     pub items: Vec<(Mesh, TrainingSample)>,
+    /// How many of `items` (the first) come from the folder.
+    pub from_folder: usize,
 }
 
 /// Seed of the held-aside procedural shapes: far from any training seed a user would pick.
@@ -49,6 +52,7 @@ impl EvalSet {
                 items.push((record.mesh.clone(), sample));
             }
         }
+        let from_folder = items.len();
         let shapes = ProceduralShapes::new(HELD_OUT_PROCEDURAL_SEED, max_faces);
         for (i, (kind, mesh)) in shapes.take(procedural).enumerate() {
             let name = format!("procedural-{i:03}-{kind:?}");
@@ -57,7 +61,13 @@ impl EvalSet {
                 items.push((normalized, sample));
             }
         }
-        Ok(Self { items })
+        Ok(Self { items, from_folder })
+    }
+
+    /// The items' indices by source: (folder, procedural).
+    fn sources(&self) -> [std::ops::Range<usize>; 2] {
+        let split = self.from_folder.min(self.items.len());
+        [0..split, split..self.items.len()]
     }
 }
 
@@ -80,6 +90,20 @@ pub struct EvalReport {
     pub face_count_error: f64,
     /// Reconstructions whose faces equal the ground truth's tokens exactly.
     pub exact: usize,
+    /// `loss` and `chamfer_mean` over the folder's meshes and over the procedural shapes
+    /// alone: the two can move in opposite directions. (None where a source has no meshes,
+    /// and in logs written before they were measured.)
+    #[serde(default)]
+    pub by_source: Option<SourceFigures>,
+}
+
+/// Figures of an evaluation per source of meshes.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SourceFigures {
+    pub loss_folder: Option<f64>,
+    pub loss_procedural: Option<f64>,
+    pub chamfer_folder: Option<f64>,
+    pub chamfer_procedural: Option<f64>,
 }
 
 /// Scores `model` on `set`: the loss in batches of `batch` meshes, then greedy decoding of
@@ -92,9 +116,15 @@ pub fn evaluate(
 ) -> Result<EvalReport, crate::model::ModelError> {
     let device = model.device().clone();
     let n = set.items.len();
-    let own = teacher_forced_loss(model, set, batch, |i| i)?;
-    let other =
-        if n > 1 { Some(teacher_forced_loss(model, set, batch, |i| (i + 1) % n)?) } else { None };
+    let [folder, procedural] = set.sources();
+    let own_folder = teacher_forced_loss(model, set, folder.clone(), batch, |i| i)?;
+    let own_procedural = teacher_forced_loss(model, set, procedural.clone(), batch, |i| i)?;
+    let own = own_folder.combined(&own_procedural).mean();
+    let other = if n > 1 {
+        teacher_forced_loss(model, set, 0..n, batch, |i| (i + 1) % n)?.mean()
+    } else {
+        None
+    };
     let predictions = reconstruct(model, set, batch, &device)?;
     let q = Quantizer::new(model.config().quant_levels as u16)
         .map_err(|e| crate::model::ModelError::bad_input(e.to_string()))?;
@@ -109,28 +139,54 @@ pub fn evaluate(
         records.push(EvalRecord { name: sample.name.clone(), result });
     }
     let summary = summarize(&records);
+    let by_source = SourceFigures {
+        loss_folder: own_folder.mean(),
+        loss_procedural: own_procedural.mean(),
+        chamfer_folder: summarize(&records[folder]).chamfer_mean,
+        chamfer_procedural: summarize(&records[procedural]).chamfer_mean,
+    };
     let meshes = set.items.len();
     Ok(EvalReport {
         meshes,
-        loss: own,
+        loss: own.unwrap_or(0.0),
         loss_other_points: other,
         chamfer_mean: summary.chamfer_mean,
         hausdorff_mean: summary.hausdorff_mean,
         failures: summary.failures,
         face_count_error: if meshes > 0 { count_error / meshes as f64 } else { 0.0 },
         exact,
+        by_source: Some(by_source),
     })
 }
 
-/// Teacher-forced loss (nats per face position) of every mesh of the set, mesh `i` decoded
-/// from the points of mesh `points_of(i)`, in batches of `batch` meshes.
+/// A loss summed over face positions, and their count.
+#[derive(Debug, Clone, Copy, Default)]
+struct LossSum {
+    sum: f64,
+    positions: usize,
+}
+
+impl LossSum {
+    /// Nats per face position; `None` over no positions.
+    fn mean(&self) -> Option<f64> {
+        (self.positions > 0).then(|| self.sum / self.positions as f64)
+    }
+
+    fn combined(&self, other: &Self) -> Self {
+        Self { sum: self.sum + other.sum, positions: self.positions + other.positions }
+    }
+}
+
+/// Teacher-forced loss of the set's meshes `indices`, mesh `i` decoded from the points of
+/// mesh `points_of(i)`, in batches of `batch` meshes.
 fn teacher_forced_loss(
     model: &FaceModel,
     set: &EvalSet,
+    indices: std::ops::Range<usize>,
     batch: usize,
     points_of: impl Fn(usize) -> usize,
-) -> Result<f64, crate::model::ModelError> {
-    let indices: Vec<usize> = (0..set.items.len()).collect();
+) -> Result<LossSum, crate::model::ModelError> {
+    let indices: Vec<usize> = indices.collect();
     let (mut loss_sum, mut positions) = (0.0, 0usize);
     for chunk in indices.chunks(batch.max(1)) {
         let examples: Vec<TrainExample> = chunk
@@ -145,7 +201,7 @@ fn teacher_forced_loss(
         loss_sum += f64::from(model.loss(&b)?.coords.to_scalar::<f32>()?) * n as f64;
         positions += n;
     }
-    Ok(if positions > 0 { loss_sum / positions as f64 } else { 0.0 })
+    Ok(LossSum { sum: loss_sum, positions })
 }
 
 /// Greedy reconstructions of every mesh of the set, `batch` sequences decoded together.
@@ -212,24 +268,53 @@ mod tests {
         let (_, model) = random_model(&cfg);
         let set = EvalSet::build(None, 0, 3, &sample_config(&cfg), cfg.max_faces).unwrap();
         assert_eq!(set.items.len(), 3);
-        let own = teacher_forced_loss(&model, &set, 2, |i| i).unwrap();
-        let other = teacher_forced_loss(&model, &set, 2, |i| (i + 1) % 3).unwrap();
+        let loss = |set: &EvalSet, points_of: fn(usize) -> usize| {
+            teacher_forced_loss(&model, set, 0..3, 2, points_of).unwrap().mean().unwrap()
+        };
+        let own = loss(&set, |i| i);
+        let other = loss(&set, |i| (i + 1) % 3);
         assert!(own.is_finite() && other.is_finite());
         // Other shapes' latents change the predictions even with random weights.
         assert!((own - other).abs() > 1e-4, "own {own}, other {other}");
 
         // A set of copies of one mesh: another mesh's points are its own points.
-        let copies = EvalSet { items: vec![set.items[0].clone(); 3] };
-        let same = teacher_forced_loss(&model, &copies, 2, |i| i).unwrap();
-        let swapped = teacher_forced_loss(&model, &copies, 2, |i| (i + 1) % 3).unwrap();
+        let copies = EvalSet { items: vec![set.items[0].clone(); 3], from_folder: 0 };
+        let (same, swapped) = (loss(&copies, |i| i), loss(&copies, |i| (i + 1) % 3));
         assert!((same - swapped).abs() < 1e-5, "{same} vs {swapped}");
 
         let report = evaluate(&model, &set, 2, &MetricOptions::default()).unwrap();
-        assert_eq!((report.loss, report.loss_other_points), (own, Some(other)));
-        let one = EvalSet { items: set.items[..1].to_vec() };
+        assert!((report.loss - own).abs() < 1e-5, "{} vs {own}", report.loss);
+        assert_eq!(report.loss_other_points, Some(other));
+        let one = EvalSet { items: set.items[..1].to_vec(), from_folder: 0 };
         assert_eq!(
             evaluate(&model, &one, 2, &MetricOptions::default()).unwrap().loss_other_points,
             None
         );
+    }
+
+    #[test]
+    fn figures_are_also_given_per_source() {
+        let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+        let (_, model) = random_model(&cfg);
+        let mut set = EvalSet::build(None, 0, 3, &sample_config(&cfg), cfg.max_faces).unwrap();
+        assert_eq!(set.from_folder, 0);
+        // Count the first shape as the folder's.
+        set.from_folder = 1;
+        let metric = MetricOptions { samples: 2000, ..MetricOptions::default() };
+        let report = evaluate(&model, &set, 2, &metric).unwrap();
+        let by = report.by_source.clone().unwrap();
+        let alone = |range: std::ops::Range<usize>| {
+            let items = set.items[range].to_vec();
+            evaluate(&model, &EvalSet { items, from_folder: 0 }, 2, &metric).unwrap()
+        };
+        let (first, rest) = (alone(0..1), alone(1..3));
+        let close = |a: Option<f64>, b: f64| (a.unwrap() - b).abs() < 1e-5;
+        assert!(close(by.loss_folder, first.loss), "{by:?} {first:?}");
+        assert!(close(by.loss_procedural, rest.loss), "{by:?} {rest:?}");
+        assert_eq!(by.chamfer_folder, first.chamfer_mean);
+        assert_eq!(by.chamfer_procedural, rest.chamfer_mean);
+        // The whole set's loss lies between its parts' (a mean over face positions).
+        let (lo, hi) = (first.loss.min(rest.loss), first.loss.max(rest.loss));
+        assert!(report.loss >= lo - 1e-5 && report.loss <= hi + 1e-5, "{report:?}");
     }
 }

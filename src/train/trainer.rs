@@ -341,9 +341,18 @@ impl run_loop::Steps for Trainer {
 
 pub fn eval_line(step: u64, r: &EvalReport) -> String {
     let opt = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.4}"));
+    let by_source = r.by_source.as_ref().map_or_else(String::new, |b| {
+        format!(
+            "; folder / procedural: loss {} / {}, CD {} / {}",
+            opt(b.loss_folder),
+            opt(b.loss_procedural),
+            opt(b.chamfer_folder),
+            opt(b.chamfer_procedural)
+        )
+    });
     format!(
         "eval @ {step}: loss {:.3} ({} with other meshes' points), CD {}, HD {}, failures {}/{}, \
-         exact {}, face-count error {:.2}",
+         exact {}, face-count error {:.2}{by_source}",
         r.loss,
         r.loss_other_points.map_or_else(|| "-".into(), |v| format!("{v:.3}")),
         opt(r.chamfer_mean),
