@@ -3,7 +3,6 @@
 //! all have finished (see `crate::candidates`). Its faces therefore arrive together at the
 //! end, not one by one.
 
-use std::sync::Arc;
 use std::time::Instant;
 
 use futures_util::future::join_all;
@@ -31,7 +30,7 @@ pub(super) fn submit(
     };
     let runtime = tokio::runtime::Handle::try_current()
         .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
-    let points: Arc<[[f32; 3]]> = prepared.points.clone().into();
+    let points = prepared.points.clone();
     let normalization = prepared.normalization;
     let seed = request.options.sampling.seed;
     let started = Instant::now();
