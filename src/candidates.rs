@@ -106,9 +106,9 @@ pub fn input_distance(faces: &[FaceToken], q: Quantizer, points: &[[f32; 3]], se
     }
 }
 
-/// The index of the candidate closest to `points` (the first on ties); `None` for none.
-pub fn closest_to_input(
-    candidates: &[Candidate],
+/// The index of the face sequence closest to `points` (the first on ties); `None` for none.
+pub fn closest_to_input<'a>(
+    candidates: impl ExactSizeIterator<Item = &'a [FaceToken]>,
     q: Quantizer,
     points: &[[f32; 3]],
     seed: u64,
@@ -117,34 +117,25 @@ pub fn closest_to_input(
         return Some(0); // nothing to compare
     }
     let distances: Vec<f64> =
-        candidates.iter().map(|c| input_distance(&c.faces, q, points, seed)).collect();
-    (0..candidates.len()).min_by(|&a, &b| distances[a].total_cmp(&distances[b]))
+        candidates.map(|faces| input_distance(faces, q, points, seed)).collect();
+    (0..distances.len()).min_by(|&a, &b| distances[a].total_cmp(&distances[b]))
 }
 
 /// Decodes `n` candidates from options `base` (see [`candidate_options`]) and returns the one
-/// closest to the input `points`; `on_face` sees every decoded face.
+/// closest to the input `points`, placed on grid `q`; `on_face` sees every decoded face.
 pub fn best_of(
     model: &FaceModel,
     latents: &Tensor,
     base: &GenerateOptions,
     n: usize,
     points: &[[f32; 3]],
+    q: Quantizer,
     on_face: impl FnMut(),
 ) -> Result<Candidate, ModelError> {
-    let q = model_quantizer(model)?;
     let mut candidates = decode_candidates(model, latents, candidate_options(base, n), on_face)?;
-    let best = closest_to_input(&candidates, q, points, base.sampling.seed).unwrap_or(0);
+    let faces = candidates.iter().map(|c| c.faces.as_slice());
+    let best = closest_to_input(faces, q, points, base.sampling.seed).unwrap_or(0);
     Ok(candidates.swap_remove(best))
-}
-
-/// The tokenizer's grid of `model`'s quantization, which places its faces.
-fn model_quantizer(model: &FaceModel) -> Result<Quantizer, ModelError> {
-    let levels = model.config().quant_levels;
-    u16::try_from(levels).ok().and_then(|l| Quantizer::new(l).ok()).ok_or_else(|| {
-        ModelError::BadInput(format!(
-            "picking candidates needs a model on a grid the tokenizer supports, not {levels} levels"
-        ))
-    })
 }
 
 #[cfg(test)]
@@ -209,9 +200,10 @@ mod tests {
         };
         // Half a cube, the whole cube, and nothing at all.
         let candidates = [candidate(&whole[..6]), candidate(&whole), candidate(&[])];
-        assert_eq!(closest_to_input(&candidates, q, &points, 0), Some(1));
+        let faces = candidates.iter().map(|c| c.faces.as_slice());
+        assert_eq!(closest_to_input(faces, q, &points, 0), Some(1));
         assert!(input_distance(&whole, q, &points, 0) < 0.1);
         assert_eq!(input_distance(&[], q, &points, 0), f64::INFINITY);
-        assert_eq!(closest_to_input(&[], q, &points, 0), None);
+        assert_eq!(closest_to_input(std::iter::empty(), q, &points, 0), None);
     }
 }

@@ -78,11 +78,12 @@ pub fn decode_to_file(
         face_beam: args.face_beam,
         ..GenerateOptions::default()
     };
+    let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let bar =
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
     let (faces, reason) = match candidates {
         Some(c) => {
-            let best = best_of(model, latents, &options, c.count, c.points, || bar.inc(1))?;
+            let best = best_of(model, latents, &options, c.count, c.points, q, || bar.inc(1))?;
             (best.faces, best.finish)
         }
         None => generate(model, latents, options, |_| {
@@ -91,7 +92,6 @@ pub fn decode_to_file(
         })?,
     };
     bar.finish_and_clear();
-    let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let mesh = normalization.invert_mesh(&detokenize(&faces, q));
     anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
     write(&mesh, &args.output, args.format)?;

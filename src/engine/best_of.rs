@@ -8,7 +8,7 @@ use std::time::Instant;
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{candidate_sampling, input_distance};
+use crate::candidates::{candidate_sampling, closest_to_input};
 use crate::tokenize::{Quantizer, face_positions};
 
 use super::{
@@ -82,20 +82,11 @@ fn pick(
     points: &[[f32; 3]],
     seed: u64,
 ) -> Result<Completed, EngineError> {
-    let mut best: Option<(f64, Completed)> = None;
-    let mut first_error = None;
-    for result in finished {
-        match result {
-            Ok(c) => {
-                let d = input_distance(&c.tokens, q, points, seed);
-                if best.as_ref().is_none_or(|(best_d, _)| d < *best_d) {
-                    best = Some((d, c));
-                }
-            }
-            Err(e) => {
-                first_error.get_or_insert(e);
-            }
-        }
+    let (completed, failed): (Vec<_>, Vec<_>) = finished.into_iter().partition(Result::is_ok);
+    let mut completed: Vec<Completed> = completed.into_iter().flatten().collect();
+    let faces = completed.iter().map(|c| c.tokens.as_slice());
+    match closest_to_input(faces, q, points, seed) {
+        Some(best) => Ok(completed.swap_remove(best)),
+        None => Err(failed.into_iter().find_map(Result::err).unwrap_or(EngineError::Stopped)),
     }
-    best.map(|(_, c)| c).ok_or_else(|| first_error.unwrap_or(EngineError::Stopped))
 }
