@@ -171,6 +171,16 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
 }
 
 #[test]
+fn serve_refuses_a_candidate_default_out_of_range() {
+    for n in ["0", "17"] {
+        let o = meshstream(&["serve", "--candidates", n, "--model", "/no/model"]);
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("--candidates") && !err.contains("/no/model"), "{err}");
+    }
+}
+
+#[test]
 fn a_reader_that_goes_away_ends_the_output_without_a_panic() {
     let dir = tempfile::tempdir().unwrap();
     write_mesh_file(&uv_sphere(1.0, 16, 8), &dir.path().join("ball.obj"), None).unwrap();

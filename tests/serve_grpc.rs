@@ -48,7 +48,8 @@ async fn the_stream_delivers_faces_incrementally_equal_to_the_http_mesh() {
     assert_eq!(stats.faces as usize, faces.len());
     assert!(!stats.request_id.is_empty());
 
-    let body = points_json(&shape(), json!({"max_faces": 200}));
+    // A whole mesh over HTTP defaults to several candidates; the stream decoded one.
+    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1}));
     let r =
         reqwest::Client::new().post(server.url("/reconstruct")).json(&body).send().await.unwrap();
     let mesh = read_mesh(&r.bytes().await.unwrap(), Format::Gltf, &ReadLimits::default()).unwrap();

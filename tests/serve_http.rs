@@ -111,7 +111,8 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
     let server = Server::start(&[]);
-    let body = points_json(&shape(), json!({"max_faces": 200}));
+    // One candidate for both: a whole mesh otherwise defaults to the best of several.
+    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1}));
     let (_, glb) = reconstruct_glb(&server, &body).await;
     let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
     for accept in ["text/event-stream", "application/x-ndjson"] {
@@ -131,6 +132,24 @@ async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
             assert!(span > Duration::from_millis(5), "all faces arrived at once ({span:?})");
         }
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
+    let server = Server::start(&["--candidates", "3"]);
+    let c = client();
+    let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["defaults"]["candidates"], json!({"whole_mesh": 3, "stream": 1}));
+    // Every candidate is an engine request of its own.
+    let finished = || server.metric(&c, "meshstream_requests_finished_total{");
+    let body = points_json(&shape(), json!({"max_faces": 40}));
+    reconstruct_glb(&server, &body).await;
+    assert_eq!(finished().await, 3.0);
+    stream_events(&server, &body, "application/x-ndjson").await;
+    assert_eq!(finished().await, 4.0);
+    let asked = points_json(&shape(), json!({"max_faces": 40, "candidates": 2}));
+    stream_events(&server, &asked, "application/x-ndjson").await;
+    assert_eq!(finished().await, 6.0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Args;
+use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{ReadLimits, primitives, sample_surface};
 use meshstream::model::{DEFAULT_FACE_BEAM, checkpoint, parse_device};
@@ -67,6 +68,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         grpc_addr: loopback,
         limits: InputLimits { max_points: 1 << 20, read: ReadLimits::default() },
         max_body_bytes: 64 << 20,
+        whole_mesh_candidates: DEFAULT_CANDIDATES,
         request_timeout: Duration::from_secs(600),
         shutdown_grace: Duration::from_secs(5),
         image: ImageServeConfig::default(),

@@ -3,7 +3,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::candidates::MAX_CANDIDATES;
+use meshstream::candidates::{DEFAULT_CANDIDATES, MAX_CANDIDATES};
 use meshstream::model::{checkpoint, parse_device};
 
 use super::decode::{Candidates, DecodeArgs, decode_to_file};
@@ -26,8 +26,9 @@ pub struct ReconstructArgs {
     #[arg(long, default_value = "cpu")]
     device: String,
     /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points: better meshes for about N times the decoding work.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=MAX_CANDIDATES as u64))]
+    /// closest to the input points: better meshes for more decoding work; 1 decodes greedily
+    /// only.
+    #[arg(long, default_value_t = DEFAULT_CANDIDATES as u64, value_parser = clap::value_parser!(u64).range(1..=MAX_CANDIDATES as u64))]
     candidates: u64,
 }
 

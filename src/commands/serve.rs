@@ -4,7 +4,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use clap::builder::RangedU64ValueParser;
 use clap::{Args, ValueEnum};
+use meshstream::candidates::{DEFAULT_CANDIDATES, MAX_CANDIDATES};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::ReadLimits;
 use meshstream::model::{checkpoint, parse_device};
@@ -78,6 +80,12 @@ pub struct ServeArgs {
     /// Most triangles in an uploaded mesh.
     #[arg(long, env = "MESHSTREAM_MAX_MESH_FACES", default_value_t = 4_000_000)]
     max_mesh_faces: usize,
+    /// Candidates of a reconstruction answered with a whole mesh that does not say (see
+    /// `reconstruct --candidates`); streamed answers take 1 unless they say, so that their faces
+    /// arrive as they are decoded.
+    #[arg(long, env = "MESHSTREAM_CANDIDATES", default_value_t = DEFAULT_CANDIDATES,
+          value_parser = RangedU64ValueParser::<usize>::new().range(1..=MAX_CANDIDATES as u64))]
+    candidates: usize,
     /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
     /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
     #[arg(long, env = "MESHSTREAM_IMAGE_MODEL")]
@@ -146,6 +154,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             },
         },
         max_body_bytes: args.max_body_bytes,
+        whole_mesh_candidates: args.candidates,
         request_timeout: seconds("request-timeout", args.request_timeout)?,
         shutdown_grace: seconds("shutdown-grace", args.shutdown_grace)?,
         model_dir: args.model.clone(),

@@ -32,6 +32,8 @@ pub struct AppState {
     pub engine: Engine,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
+    /// Candidates of a points request answered with a whole mesh that does not say.
+    pub whole_mesh_candidates: usize,
     pub request_timeout: Duration,
     /// How images are prepared and sampled; `None` when the engine has no image model.
     pub image: Option<ImageDefaults>,
@@ -119,8 +121,12 @@ async fn reconstruct(
         let query = query_options::<ReconstructOptions>(&uri)?;
         let bytes = read_body(body, state.max_body_bytes).await?;
         let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
+        let whole_mesh_candidates = state.whole_mesh_candidates;
         off_runtime(move || {
-            let parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
+            let mut parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
+            if streaming(&headers).is_none() {
+                parsed.decode.candidates.get_or_insert(whole_mesh_candidates);
+            }
             let conditioning = prepare(&engine, &parsed.input, parsed.seed)?;
             Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
         })

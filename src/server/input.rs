@@ -27,8 +27,9 @@ pub struct ReconstructOptions {
     /// at most 32); 1 picks coordinate by coordinate.
     pub face_beam: Option<usize>,
     /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points (default 1, at most 16). With more than 1, every face
-    /// arrives at the end.
+    /// closest to the input points (at most 16). Default: the server's setting (4 unless
+    /// configured, see `/v1/info`) for a whole mesh, 1 for a stream. With more than 1, every
+    /// face arrives at the end.
     pub candidates: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,

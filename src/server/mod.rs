@@ -52,6 +52,8 @@ pub struct ServeConfig {
     pub grpc_addr: SocketAddr,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
+    /// Candidates of a points request answered with a whole mesh that does not say.
+    pub whole_mesh_candidates: usize,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
     pub request_timeout: Duration,
     /// After SIGTERM: how long accepted requests may still take.
@@ -127,6 +129,9 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
             "max_image_side": cfg.image.max_side,
         })),
         "engine": engine.config(),
+        "defaults": {
+            "candidates": { "whole_mesh": cfg.whole_mesh_candidates, "stream": 1 },
+        },
         "limits": {
             "max_faces": engine.face_limit(),
             "max_points": cfg.limits.max_points,
@@ -172,6 +177,7 @@ pub async fn serve(
         engine: engine.clone(),
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
+        whole_mesh_candidates: cfg.whole_mesh_candidates,
         request_timeout: cfg.request_timeout,
         image: cfg.image.defaults(&engine),
         info: Arc::new(info_document(&engine, &cfg)),

@@ -66,14 +66,17 @@ impl Server {
         None
     }
 
-    /// A metric's value from `/metrics` (the first sample whose line starts with `prefix`).
+    /// A metric's value from `/metrics`: the sum of the samples whose lines start with `prefix`
+    /// (one sample, or all of a metric's labels when the prefix leaves them open).
     pub async fn metric(&self, client: &reqwest::Client, prefix: &str) -> f64 {
         let text = client.get(self.url("/metrics")).send().await.unwrap().text().await.unwrap();
-        text.lines()
-            .find(|l| l.starts_with(prefix))
-            .and_then(|l| l.rsplit(' ').next())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or_else(|| panic!("no {prefix} in\n{text}"))
+        let values: Vec<f64> = text
+            .lines()
+            .filter(|l| l.starts_with(prefix))
+            .filter_map(|l| l.rsplit(' ').next()?.parse().ok())
+            .collect();
+        assert!(!values.is_empty(), "no {prefix} in\n{text}");
+        values.iter().sum()
     }
 }
 
