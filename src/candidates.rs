@@ -27,7 +27,7 @@ pub const CANDIDATE_TEMPERATURE: f32 = 1.2;
 
 /// Candidates of a reconstruction that does not say and whose faces nobody watches arrive: the
 /// CLI's, and HTTP requests answered with a whole mesh (a server setting). Four cost about
-/// twice one greedy decode and halve the dev split's Chamfer distance (`docs/decisions.md`).
+/// twice one decode and take a fifth off the dev split's Chamfer distance (the model card).
 pub const DEFAULT_CANDIDATES: usize = 4;
 
 /// Points sampled on each candidate's surface to compare it with the input points.

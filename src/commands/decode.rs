@@ -11,7 +11,9 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use meshstream::candidates::best_of;
 use meshstream::mesh::{Format, Normalization, write_mesh_file};
-use meshstream::model::{DEFAULT_FACE_BEAM, FaceModel, GenerateOptions, SamplingParams, generate};
+use meshstream::model::{
+    DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, GenerateOptions, SamplingParams, generate,
+};
 use meshstream::tokenize::{Quantizer, detokenize};
 
 #[derive(Args)]
@@ -25,8 +27,8 @@ pub struct DecodeArgs {
     /// Face budget (at most the model's limit).
     #[arg(long)]
     pub max_faces: Option<usize>,
-    /// 0 decodes greedily (the paper's default).
-    #[arg(long, default_value_t = 0.0)]
+    /// Sampling temperature; 0 decodes greedily (the paper's default), with the face beam.
+    #[arg(long, default_value_t = DEFAULT_TEMPERATURE)]
     pub temperature: f32,
     #[arg(long)]
     pub top_k: Option<usize>,

@@ -71,8 +71,8 @@ pub use encoder::EncoderOutput;
 pub use error::ModelError;
 pub use face::{FaceModel, SequenceState, TrainLoss};
 pub use generate::{
-    DEFAULT_FACE_BEAM, FaceStream, FinishReason, GenerateOptions, Generation, MAX_FACE_BEAM,
-    StepEvent, generate, step_generations,
+    DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceStream, FinishReason, GenerateOptions, Generation,
+    MAX_FACE_BEAM, StepEvent, generate, step_generations,
 };
 pub use input::PointCloudInput;
 pub use sampling::{Sampler, SamplingParams};

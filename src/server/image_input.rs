@@ -27,7 +27,7 @@ pub struct GenerateOptions {
     pub guidance: Option<f32>,
     /// Seed of the diffusion noise, and of the decoding when it samples.
     pub seed: Option<u64>,
-    /// 0 (the default) decodes greedily.
+    /// Sampling temperature (default 1.2); 0 decodes greedily.
     pub temperature: Option<f32>,
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,

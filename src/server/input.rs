@@ -9,7 +9,7 @@ use utoipa::{IntoParams, ToSchema};
 use crate::candidates::MAX_CANDIDATES;
 use crate::engine::DecodeOptions;
 use crate::mesh::{Format, Mesh, ReadLimits, read_mesh};
-use crate::model::{MAX_FACE_BEAM, SamplingParams};
+use crate::model::{DEFAULT_TEMPERATURE, MAX_FACE_BEAM, SamplingParams};
 
 use super::error::ApiError;
 
@@ -19,7 +19,7 @@ use super::error::ApiError;
 pub struct ReconstructOptions {
     /// Face budget (default and maximum: the server's limit, see `/v1/info`).
     pub max_faces: Option<usize>,
-    /// 0 (the default) decodes greedily.
+    /// Sampling temperature (default 1.2); 0 decodes greedily.
     pub temperature: Option<f32>,
     pub top_k: Option<usize>,
     pub top_p: Option<f32>,
@@ -104,7 +104,8 @@ pub fn output_format(name: Option<&str>) -> Result<Format, ApiError> {
     }
 }
 
-/// Decoding options from a request's fields, checked; greedy unless a temperature is given.
+/// Decoding options from a request's fields, checked; sampled at [`DEFAULT_TEMPERATURE`] unless
+/// a temperature is given.
 pub fn decode_options(
     max_faces: Option<usize>,
     temperature: Option<f32>,
@@ -113,7 +114,12 @@ pub fn decode_options(
     face_beam: Option<usize>,
     seed: u64,
 ) -> Result<DecodeOptions, ApiError> {
-    let sampling = SamplingParams { temperature: temperature.unwrap_or(0.0), top_k, top_p, seed };
+    let sampling = SamplingParams {
+        temperature: temperature.unwrap_or(DEFAULT_TEMPERATURE),
+        top_k,
+        top_p,
+        seed,
+    };
     sampling.validate().map_err(|e| ApiError::invalid(e.to_string()))?;
     if let Some(beam) = face_beam
         && !(1..=MAX_FACE_BEAM).contains(&beam)
@@ -280,6 +286,16 @@ mod tests {
         assert_eq!(r.input.vertices.len(), 3);
         assert_eq!(r.decode.max_faces, Some(10));
         assert_eq!(r.format, Format::Obj);
+    }
+
+    #[test]
+    fn requests_sample_unless_they_ask_for_greedy_decoding() {
+        let points = r#""points": [[0,0,0],[1,0,0],[0,1,0]]"#;
+        let temperature = |extra: &str| json(&format!("{{{points}{extra}}}")).unwrap();
+        let default = temperature("").decode.sampling.temperature;
+        assert_eq!(default, DEFAULT_TEMPERATURE);
+        assert_eq!(temperature(r#", "temperature": 0"#).decode.sampling.temperature, 0.0);
+        assert_eq!(temperature(r#", "temperature": 0.4"#).decode.sampling.temperature, 0.4);
     }
 
     #[test]
