@@ -140,6 +140,8 @@ async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
     let c = client();
     let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["defaults"]["candidates"], json!({"whole_mesh": 3, "stream": 1}));
+    let temperature = info["defaults"]["temperature"].as_f64().unwrap() as f32;
+    assert_eq!(temperature, meshstream::model::DEFAULT_TEMPERATURE);
     // Every candidate is an engine request of its own.
     let finished = || server.metric(&c, "meshstream_requests_finished_total{");
     let body = points_json(&shape(), json!({"max_faces": 40}));

@@ -31,6 +31,7 @@ use tokio_stream::wrappers::TcpListenerStream;
 use crate::diffusion::ImageOptions;
 use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints};
 use crate::mesh::Mesh;
+use crate::model::DEFAULT_TEMPERATURE;
 
 pub use error::ApiError;
 use image_input::ImageDefaults;
@@ -131,6 +132,7 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
         "engine": engine.config(),
         "defaults": {
             "candidates": { "whole_mesh": cfg.whole_mesh_candidates, "stream": 1 },
+            "temperature": DEFAULT_TEMPERATURE,
         },
         "limits": {
             "max_faces": engine.face_limit(),
