@@ -26,8 +26,7 @@ pub struct ReconstructArgs {
     #[arg(long, default_value = "cpu")]
     device: String,
     /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points: better meshes for more decoding work; 1 decodes greedily
-    /// only.
+    /// closest to the input points: better meshes for more decoding work; 1 decodes one mesh.
     #[arg(long, default_value_t = DEFAULT_CANDIDATES as u64, value_parser = clap::value_parser!(u64).range(1..=MAX_CANDIDATES as u64))]
     candidates: u64,
 }
