@@ -11,7 +11,7 @@ use clap::Args;
 use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{ReadLimits, primitives, sample_surface};
-use meshstream::model::{DEFAULT_FACE_BEAM, checkpoint, parse_device};
+use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
     Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
@@ -36,6 +36,9 @@ pub struct ServeBenchArgs {
     /// Face budget of each request.
     #[arg(long, default_value_t = 200)]
     max_faces: u32,
+    /// Sampling temperature of each request (0: greedy decoding with `--face-beam`).
+    #[arg(long, default_value_t = DEFAULT_TEMPERATURE)]
+    temperature: f32,
     /// Greedy decoding's face beam in each request (1: per-coordinate greedy).
     #[arg(long, default_value_t = DEFAULT_FACE_BEAM as u32)]
     face_beam: u32,
@@ -82,7 +85,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         let server = tokio::spawn(serve(engine, serve_config, listeners, async {
             let _ = stopped.await;
         }));
-        let request = request(args.max_faces, args.face_beam);
+        let request = request(args);
         let mut table = super::table();
         table.set_header([
             "clients",
@@ -136,7 +139,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
 }
 
 /// A fixed test shape (a box with a sphere on top), sampled to points with normals.
-fn request(max_faces: u32, face_beam: u32) -> ReconstructRequest {
+fn request(args: &ServeBenchArgs) -> ReconstructRequest {
     let mut shape = primitives::cuboid([1.0, 0.6, 0.8]);
     shape.append(&primitives::uv_sphere(0.4, 8, 5).translated([0.0, 0.6, 0.0]));
     let cloud = sample_surface(&shape, 4096, 0).unwrap_or_default();
@@ -146,8 +149,9 @@ fn request(max_faces: u32, face_beam: u32) -> ReconstructRequest {
             normals: cloud.normals.unwrap_or_default().iter().flatten().copied().collect(),
         })),
         options: Some(Options {
-            max_faces: Some(max_faces),
-            face_beam: Some(face_beam),
+            max_faces: Some(args.max_faces),
+            temperature: Some(args.temperature),
+            face_beam: Some(args.face_beam),
             ..Options::default()
         }),
     }
