@@ -19,6 +19,7 @@ use std::path::Path;
 
 use anyhow::Context;
 use candle_core::Device;
+use meshstream::candidates::MAX_CANDIDATES;
 use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
 use meshstream::mesh::{Mesh, Normalization, ReadLimits, encoder_points, read_mesh_file};
 
@@ -77,6 +78,11 @@ pub fn load_image_model(
 }
 
 /// A table printed as Markdown, so figures paste straight into notes and model cards.
+/// The parser of a `--candidates` flag: 1 to `MAX_CANDIDATES`.
+pub fn candidate_count() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::new().range(1..=MAX_CANDIDATES as u64)
+}
+
 pub fn table() -> comfy_table::Table {
     let mut table = comfy_table::Table::new();
     table.load_style(comfy_table::presets::ASCII_MARKDOWN);

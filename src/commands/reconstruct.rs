@@ -3,11 +3,11 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::candidates::{DEFAULT_CANDIDATES, MAX_CANDIDATES};
+use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::model::{checkpoint, parse_device};
 
 use super::decode::{Candidates, DecodeArgs, decode_to_file};
-use super::input_points;
+use super::{candidate_count, input_points};
 
 #[derive(Args)]
 pub struct ReconstructArgs {
@@ -27,8 +27,8 @@ pub struct ReconstructArgs {
     device: String,
     /// Decode this many meshes (the first as asked, the others sampled) and keep the one
     /// closest to the input points: better meshes for more decoding work; 1 decodes one mesh.
-    #[arg(long, default_value_t = DEFAULT_CANDIDATES as u64, value_parser = clap::value_parser!(u64).range(1..=MAX_CANDIDATES as u64))]
-    candidates: u64,
+    #[arg(long, default_value_t = DEFAULT_CANDIDATES, value_parser = candidate_count())]
+    candidates: usize,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -39,7 +39,7 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let (cloud, normalization) = input_points(&args.input, cfg.num_points, args.seed)?;
     let start = Instant::now();
     let latents = model.encode_point_cloud(&cloud)?;
-    let candidates = Candidates { points: &cloud.vertices, count: args.candidates as usize };
+    let candidates = Candidates { points: &cloud.vertices, count: args.candidates };
     decode_to_file(
         &model,
         &latents,

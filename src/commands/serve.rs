@@ -4,9 +4,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use clap::builder::RangedU64ValueParser;
 use clap::{Args, ValueEnum};
-use meshstream::candidates::{DEFAULT_CANDIDATES, MAX_CANDIDATES};
+use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::ReadLimits;
 use meshstream::model::{checkpoint, parse_device};
@@ -15,7 +14,7 @@ use tracing_subscriber::EnvFilter;
 
 use super::out;
 
-use super::{image_model_dir, load_image_model};
+use super::{candidate_count, image_model_dir, load_image_model};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum LogFormat {
@@ -84,7 +83,7 @@ pub struct ServeArgs {
     /// `reconstruct --candidates`); streamed answers take 1 unless they say, so that their faces
     /// arrive as they are decoded.
     #[arg(long, env = "MESHSTREAM_CANDIDATES", default_value_t = DEFAULT_CANDIDATES,
-          value_parser = RangedU64ValueParser::<usize>::new().range(1..=MAX_CANDIDATES as u64))]
+          value_parser = candidate_count())]
     candidates: usize,
     /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
     /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
