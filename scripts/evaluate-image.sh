@@ -4,7 +4,8 @@
 # normalized cube in frame, 256 px), runs `meshstream generate` on the picture, and scores the
 # result against the ground truth with `meshstream eval` (DESIGN.md's CD/HD, both in the
 # normalized frame, since an image carries no scale or position).
-# Usage: scripts/evaluate-image.sh [MODEL_DIR] [OUT_DIR] [GUIDANCE] [STEPS]
+# Usage: scripts/evaluate-image.sh [MODEL_DIR] [OUT_DIR] [GUIDANCE] [STEPS] [GENERATE FLAGS...],
+# e.g. --temperature 0.
 # GUIDANCE 0 ignores the image: the unconditional lower bound.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,6 +13,7 @@ model=${1:-models/default}
 out=${2:-target/eval-image}
 guidance=${3:-2}
 steps=${4:-50}
+shift $(($# < 4 ? $# : 4))
 data=../shared/data
 bin="${CARGO_TARGET_DIR:-target}/release/meshstream"
 cargo build --release --quiet --bin meshstream
@@ -25,7 +27,7 @@ awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | whil
   [ -f "$out/views/$name.png" ] || "$bin" render "$data/lowpoly/$f" -o "$out/views/$name.png" \
     --views 1 --size 256 --azimuth 30 --elevation 20 --fov 40 --distance "$distance" 2>/dev/null
   RAYON_NUM_THREADS=1 "$bin" generate "$out/views/$name.png" -o "$out/pred/$name.glb" \
-    --model "$model" --guidance "$guidance" --steps "$steps" 2>/dev/null \
+    --model "$model" --guidance "$guidance" --steps "$steps" "$@" 2>/dev/null \
     || echo "no mesh for $name" >&2
 done
 echo "== lowpoly dev split, image -> mesh (guidance $guidance, $steps steps)"
