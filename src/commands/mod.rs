@@ -77,12 +77,12 @@ pub fn load_image_model(
         .with_context(|| format!("loading the image model in {}", dir.display()))
 }
 
-/// A table printed as Markdown, so figures paste straight into notes and model cards.
 /// The parser of a `--candidates` flag: 1 to `MAX_CANDIDATES`.
 pub fn candidate_count() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::new().range(1..=MAX_CANDIDATES as u64)
 }
 
+/// A table printed as Markdown, so figures paste straight into notes and model cards.
 pub fn table() -> comfy_table::Table {
     let mut table = comfy_table::Table::new();
     table.load_style(comfy_table::presets::ASCII_MARKDOWN);
