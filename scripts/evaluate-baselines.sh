@@ -31,7 +31,7 @@ for method in hull poisson; do
   done
   echo "== $method: built in $((SECONDS - start)) s"
   echo "== $method, lowpoly dev split"
-  "$bin" eval --pred "$out/$method-dev" --gt "$out/dev-gt" | tail -n 5
+  "$bin" eval --pred "$out/$method-dev" --gt "$out/dev-gt" | tail -n 6
   echo "== $method, famous-dev"
   "$bin" eval --pred "$out/$method-famous" --gt "$data/famous-dev"
 done

@@ -31,4 +31,4 @@ awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | whil
     || echo "no mesh for $name" >&2
 done
 echo "== lowpoly dev split, image -> mesh (guidance $guidance, $steps steps)"
-"$bin" eval --pred "$out/pred" --gt "$out/gt" | tail -n 5
+"$bin" eval --pred "$out/pred" --gt "$out/gt" | tail -n 6

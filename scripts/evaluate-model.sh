@@ -26,6 +26,6 @@ for gt_dir in "$out/dev-gt" "$data/famous-dev"; do
   done
 done
 echo "== lowpoly dev split"
-"$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | tail -n 5
+"$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | tail -n 6
 echo "== famous-dev"
 "$bin" eval --pred "$out/famous-pred" --gt "$data/famous-dev"

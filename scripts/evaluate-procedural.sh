@@ -24,6 +24,6 @@ for set in all primitives; do
   done
   for method in model hull; do
     echo "== $set: $method"
-    "$target/meshstream" eval --pred "$out/$set/$method" --gt "$out/$set/gt" | tail -n 5
+    "$target/meshstream" eval --pred "$out/$set/$method" --gt "$out/$set/gt" | tail -n 6
   done
 done

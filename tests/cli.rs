@@ -84,19 +84,21 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
     std::fs::create_dir_all(&gt).unwrap();
     std::fs::create_dir_all(&pred).unwrap();
     let cube = cuboid([2.0; 3]);
-    for name in ["a", "b", "c"] {
+    for name in ["a", "b", "c", "d"] {
         write_mesh_file(&cube, &gt.join(format!("{name}.ply")), None).unwrap();
     }
-    // a: the cube shifted by 0.1 (known answer); b: a point cloud (no faces); c: missing.
+    // a: the cube shifted by 0.1 (known answer); b: a point cloud (no faces); c: missing;
+    // d: the cube itself.
     write_mesh_file(&cube.clone().translated([0.1, 0.0, 0.0]), &gt.join("../pred/a.obj"), None)
         .unwrap();
     let mut cloud = cube.clone();
     cloud.faces.clear();
     write_mesh_file(&cloud, &pred.join("b.ply"), Some(Format::Ply)).unwrap();
+    write_mesh_file(&cube, &pred.join("d.stl"), None).unwrap();
     let v = ok_json(&["eval", "--pred", path(&pred), "--gt", path(&gt), "--json"]);
     let s = &v["summary"];
-    assert_eq!(s["count"], 3);
-    assert_eq!(s["evaluated"], 1);
+    assert_eq!(s["count"], 4);
+    assert_eq!(s["evaluated"], 2);
     assert_eq!(s["failures"], 2);
     let a = &v["meshes"][0];
     // A cube of side 2 shifted by 0.1: the Hausdorff distance is exactly the shift.
@@ -107,6 +109,26 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
         v["meshes"].as_array().unwrap().iter().filter_map(|m| m["failure"].as_str()).collect();
     assert_eq!(failures.len(), 2);
     assert!(failures.iter().any(|f| f.contains("missing")));
+
+    // Face for face: the shift is 0.1 in the normalized frame, past the default tolerance, so
+    // only d's faces are right; a looser tolerance takes a's too.
+    let faces = |v: &serde_json::Value, mesh: usize| v["meshes"][mesh]["faces"]["matched"].clone();
+    assert_eq!((faces(&v, 0), faces(&v, 3)), (0.into(), 12.into()));
+    assert_eq!(v["meshes"][3]["faces"]["truth"], 12);
+    assert!(v["meshes"][1]["faces"].is_null(), "a failure has no face figures");
+    assert_eq!((v["faces"]["meshes"].clone(), v["faces"]["exact"].clone()), (2.into(), 1.into()));
+    assert_eq!(v["faces"]["recall_mean"], 0.5);
+    let loose = ok_json(&[
+        "eval",
+        "--pred",
+        path(&pred),
+        "--gt",
+        path(&gt),
+        "--face-tolerance",
+        "0.15",
+        "--json",
+    ]);
+    assert_eq!(loose["faces"]["exact"], 2);
 }
 
 #[test]

@@ -3,7 +3,10 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use meshstream::mesh::mesh_files_in;
-use meshstream::metrics::{EvalRecord, EvalSummary, MetricOptions, mesh_distances, summarize};
+use meshstream::metrics::{
+    DEFAULT_FACE_TOLERANCE, Distances, EvalRecord, EvalSummary, FaceMatch, FaceSummary,
+    MetricOptions, face_match, mesh_distances, summarize, summarize_faces,
+};
 use serde::Serialize;
 
 use super::out;
@@ -25,6 +28,11 @@ pub struct EvalArgs {
     /// Sampling seed.
     #[arg(long, default_value_t = MetricOptions::default().seed)]
     seed: u64,
+    /// How far (in the ground truth's normalized frame, [-1, 1] on its longest side) each
+    /// corner of a predicted face may be from a ground-truth face's for the face to count as
+    /// right; the default is 1.5 steps of the 128-level grid.
+    #[arg(long, default_value_t = DEFAULT_FACE_TOLERANCE)]
+    face_tolerance: f32,
     /// Print JSON instead of tables.
     #[arg(long)]
     json: bool,
@@ -37,46 +45,50 @@ struct Row {
     hausdorff: Option<f64>,
     accuracy: Option<f64>,
     completeness: Option<f64>,
+    /// Faces of the prediction that the ground truth has; `None` for a point-cloud ground
+    /// truth or a failure.
+    faces: Option<FaceMatch>,
     failure: Option<String>,
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let pairs = pair_up(&args.pred, &args.gt)?;
     let opts = MetricOptions { samples: args.samples, seed: args.seed };
-    let records: Vec<EvalRecord> = pairs
+    let (records, faces): (Vec<EvalRecord>, Vec<Option<FaceMatch>>) = pairs
         .iter()
-        .map(|(name, pred, gt)| EvalRecord {
-            name: name.clone(),
-            result: evaluate_pair(pred.as_deref(), gt, &opts),
+        .map(|(name, pred, gt)| {
+            let (result, faces) =
+                match evaluate_pair(pred.as_deref(), gt, &opts, args.face_tolerance) {
+                    Ok((d, f)) => (Ok(d), f),
+                    Err(e) => (Err(e), None),
+                };
+            (EvalRecord { name: name.clone(), result }, faces)
         })
-        .collect();
+        .unzip();
     let summary = summarize(&records);
+    let face_summary = summarize_faces(&faces.iter().flatten().copied().collect::<Vec<_>>());
     let rows: Vec<Row> = records
         .iter()
-        .map(|r| match &r.result {
-            Ok(d) => Row {
+        .zip(&faces)
+        .map(|(r, &faces)| {
+            let d = r.result.as_ref().ok();
+            Row {
                 name: r.name.clone(),
-                chamfer: Some(d.chamfer),
-                hausdorff: Some(d.hausdorff),
-                accuracy: Some(d.accuracy),
-                completeness: Some(d.completeness),
-                failure: None,
-            },
-            Err(e) => Row {
-                name: r.name.clone(),
-                chamfer: None,
-                hausdorff: None,
-                accuracy: None,
-                completeness: None,
-                failure: Some(e.clone()),
-            },
+                chamfer: d.map(|d| d.chamfer),
+                hausdorff: d.map(|d| d.hausdorff),
+                accuracy: d.map(|d| d.accuracy),
+                completeness: d.map(|d| d.completeness),
+                faces,
+                failure: r.result.as_ref().err().cloned(),
+            }
         })
         .collect();
     if args.json {
-        let report = serde_json::json!({ "meshes": rows, "summary": summary });
+        let report =
+            serde_json::json!({ "meshes": rows, "summary": summary, "faces": face_summary });
         out(serde_json::to_string_pretty(&report)?)?;
     } else {
-        print_tables(&rows, &summary)?;
+        print_tables(&rows, &summary, &face_summary, args.face_tolerance)?;
     }
     Ok(())
 }
@@ -109,22 +121,31 @@ fn stem(path: &Path) -> String {
     path.file_stem().map_or_else(String::new, |s| s.to_string_lossy().into_owned())
 }
 
-/// Distances for one pair, or why the prediction counts as a failure.
+/// Distances for one pair and, when the ground truth has faces, the faces they share; or why
+/// the prediction counts as a failure.
 fn evaluate_pair(
     pred: Option<&Path>,
     gt: &Path,
     opts: &MetricOptions,
-) -> Result<meshstream::metrics::Distances, String> {
+    face_tolerance: f32,
+) -> Result<(Distances, Option<FaceMatch>), String> {
     let pred = pred.ok_or("missing prediction")?;
     let pred = load_mesh(pred).map_err(|e| format!("unreadable prediction: {e:#}"))?;
     let gt = load_mesh(gt).map_err(|e| format!("unreadable ground truth: {e:#}"))?;
-    mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())
+    let distances = mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())?;
+    // The distances passed, so both meshes are valid: only a faceless ground truth is left.
+    Ok((distances, face_match(&pred, &gt, face_tolerance).ok()))
 }
 
-fn print_tables(rows: &[Row], s: &EvalSummary) -> anyhow::Result<()> {
+fn print_tables(
+    rows: &[Row],
+    s: &EvalSummary,
+    faces: &FaceSummary,
+    face_tolerance: f32,
+) -> anyhow::Result<()> {
     let mut table = super::table();
     // Accuracy: prediction -> ground truth; completeness: ground truth -> prediction.
-    table.set_header(["mesh", "CD", "HD", "acc.", "compl.", "failure"]);
+    table.set_header(["mesh", "CD", "HD", "acc.", "compl.", "faces right", "failure"]);
     let fmt = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
     for r in rows {
         table.add_row([
@@ -133,6 +154,10 @@ fn print_tables(rows: &[Row], s: &EvalSummary) -> anyhow::Result<()> {
             fmt(r.hausdorff),
             fmt(r.accuracy),
             fmt(r.completeness),
+            r.faces.map_or_else(
+                || "-".to_string(),
+                |f| format!("{} of {} ({} made)", f.matched, f.truth, f.predicted),
+            ),
             r.failure.clone().unwrap_or_default(),
         ]);
     }
@@ -156,5 +181,17 @@ fn print_tables(rows: &[Row], s: &EvalSummary) -> anyhow::Result<()> {
     ]);
     out(&sum)?;
     out(format_args!("meshes: {}, evaluated: {}, failures: {}", s.count, s.evaluated, s.failures))?;
+    if let (Some(recall), Some(precision)) = (faces.recall_mean, faces.precision_mean) {
+        out(format_args!(
+            "faces right (corners within {face_tolerance}): {:.1}% of the ground truth's, \
+             {:.1}% of the prediction's (means over {} meshes); every face right and none \
+             extra: {} of {}",
+            100.0 * recall,
+            100.0 * precision,
+            faces.meshes,
+            faces.exact,
+            faces.meshes
+        ))?;
+    }
     Ok(())
 }

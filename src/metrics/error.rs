@@ -15,4 +15,9 @@ pub enum MetricsError {
     InvalidGroundTruth(#[source] MeshError),
     #[error("the number of surface samples must be positive")]
     NoSamples,
+    /// Faces can only be matched against a ground truth that has faces, not a point cloud.
+    #[error("the ground truth has no faces to match")]
+    NoGroundTruthFaces,
+    #[error("the face tolerance must be finite and not negative, not {0}")]
+    InvalidTolerance(f32),
 }

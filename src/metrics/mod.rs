@@ -1,10 +1,13 @@
 //! Evaluation metrics: Chamfer and Hausdorff distances between meshes, with one definition
-//! everywhere (DESIGN.md, "Evaluation metrics"), and the set-level summary.
+//! everywhere (DESIGN.md, "Evaluation metrics"), the set-level summary, and face-for-face
+//! agreement with a low-poly ground truth.
 
 mod distances;
 mod error;
+mod faces;
 mod summary;
 
 pub use distances::{Distances, MetricOptions, mesh_distances, point_set_distances};
 pub use error::MetricsError;
+pub use faces::{DEFAULT_FACE_TOLERANCE, FaceMatch, FaceSummary, face_match, summarize_faces};
 pub use summary::{EvalRecord, EvalSummary, summarize};
