@@ -8,11 +8,14 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::mesh::Mesh;
-use crate::metrics::{EvalRecord, MetricOptions, mesh_distances, summarize};
+use crate::metrics::{
+    DEFAULT_FACE_TOLERANCE, EvalRecord, FaceMatch, MetricOptions, face_match, mesh_distances,
+    summarize, summarize_faces,
+};
 use crate::model::{
     FaceModel, GenerateOptions, Generation, TrainBatch, TrainExample, step_generations,
 };
-use crate::tokenize::{Quantizer, detokenize};
+use crate::tokenize::{FaceToken, Quantizer, detokenize};
 
 use super::augment::AugmentConfig;
 use super::batch::{SampleConfig, TrainingSample, prepare_sample};
@@ -90,6 +93,11 @@ pub struct EvalReport {
     pub face_count_error: f64,
     /// Reconstructions whose faces equal the ground truth's tokens exactly.
     pub exact: usize,
+    /// Mean share of the ground truth's faces that the reconstruction has, corner for corner
+    /// (`meshstream eval`'s "faces right" at its default tolerance): progress toward `exact`
+    /// long before a whole mesh is right. (None in logs written before it was measured.)
+    #[serde(default)]
+    pub faces_right: Option<f64>,
     /// `loss` and `chamfer_mean` over the folder's meshes and over the procedural shapes
     /// alone: the two can move in opposite directions. (None where a source has no meshes,
     /// and in logs written before they were measured.)
@@ -128,35 +136,60 @@ pub fn evaluate(
     let predictions = reconstruct(model, set, batch, &device)?;
     let q = Quantizer::new(model.config().quant_levels as u16)
         .map_err(|e| crate::model::ModelError::bad_input(e.to_string()))?;
-    let mut records = Vec::new();
-    let (mut count_error, mut exact) = (0.0, 0);
-    for ((gt, sample), faces) in set.items.iter().zip(&predictions) {
-        count_error +=
-            (faces.len() as f64 - sample.faces.len() as f64).abs() / sample.faces.len() as f64;
-        exact += usize::from(*faces == sample.faces);
-        let pred = detokenize(faces, q);
-        let result = mesh_distances(&pred, gt, metric).map_err(|e| e.to_string());
-        records.push(EvalRecord { name: sample.name.clone(), result });
-    }
-    let summary = summarize(&records);
+    let scores = score(set, &predictions, q, metric);
+    let summary = summarize(&scores.records);
     let by_source = SourceFigures {
         loss_folder: own_folder.mean(),
         loss_procedural: own_procedural.mean(),
-        chamfer_folder: summarize(&records[folder]).chamfer_mean,
-        chamfer_procedural: summarize(&records[procedural]).chamfer_mean,
+        chamfer_folder: summarize(&scores.records[folder]).chamfer_mean,
+        chamfer_procedural: summarize(&scores.records[procedural]).chamfer_mean,
     };
-    let meshes = set.items.len();
     Ok(EvalReport {
-        meshes,
+        meshes: n,
         loss: own.unwrap_or(0.0),
         loss_other_points: other,
         chamfer_mean: summary.chamfer_mean,
         hausdorff_mean: summary.hausdorff_mean,
         failures: summary.failures,
-        face_count_error: if meshes > 0 { count_error / meshes as f64 } else { 0.0 },
-        exact,
+        face_count_error: scores.face_count_error,
+        exact: scores.exact,
+        faces_right: summarize_faces(&scores.face_matches).recall_mean,
         by_source: Some(by_source),
     })
+}
+
+/// What the reconstructions of a set score against its meshes.
+struct Scores {
+    /// Distances per mesh, in the set's order.
+    records: Vec<EvalRecord>,
+    /// For every reconstruction that has faces.
+    face_matches: Vec<FaceMatch>,
+    /// Mean of |predicted faces - true faces| / true faces.
+    face_count_error: f64,
+    exact: usize,
+}
+
+fn score(
+    set: &EvalSet,
+    predictions: &[Vec<FaceToken>],
+    q: Quantizer,
+    metric: &MetricOptions,
+) -> Scores {
+    let mut scores =
+        Scores { records: Vec::new(), face_matches: Vec::new(), face_count_error: 0.0, exact: 0 };
+    for ((gt, sample), faces) in set.items.iter().zip(predictions) {
+        scores.face_count_error +=
+            (faces.len() as f64 - sample.faces.len() as f64).abs() / sample.faces.len() as f64;
+        scores.exact += usize::from(*faces == sample.faces);
+        let pred = detokenize(faces, q);
+        let result = mesh_distances(&pred, gt, metric).map_err(|e| e.to_string());
+        scores.face_matches.extend(face_match(&pred, gt, DEFAULT_FACE_TOLERANCE).ok());
+        scores.records.push(EvalRecord { name: sample.name.clone(), result });
+    }
+    if !set.items.is_empty() {
+        scores.face_count_error /= set.items.len() as f64;
+    }
+    scores
 }
 
 /// A loss summed over face positions, and their count.
@@ -210,7 +243,7 @@ pub fn reconstruct(
     set: &EvalSet,
     batch: usize,
     device: &Device,
-) -> Result<Vec<Vec<crate::tokenize::FaceToken>>, crate::model::ModelError> {
+) -> Result<Vec<Vec<FaceToken>>, crate::model::ModelError> {
     let mut out = Vec::with_capacity(set.items.len());
     for chunk in set.items.chunks(batch.max(1)) {
         let examples: Vec<TrainExample> = chunk.iter().map(|(_, s)| example(s)).collect();
@@ -226,7 +259,7 @@ pub fn greedy_decode(
     model: &FaceModel,
     latents: &candle_core::Tensor,
     options: GenerateOptions,
-) -> Result<Vec<Vec<crate::tokenize::FaceToken>>, crate::model::ModelError> {
+) -> Result<Vec<Vec<FaceToken>>, crate::model::ModelError> {
     let mut gens = (0..latents.dim(0)?)
         .map(|r| Generation::new(model, &latents.get(r)?, options.clone()))
         .collect::<Result<Vec<_>, _>>()?;
@@ -290,6 +323,26 @@ mod tests {
             evaluate(&model, &one, 2, &MetricOptions::default()).unwrap().loss_other_points,
             None
         );
+    }
+
+    #[test]
+    fn the_ground_truths_own_faces_score_exact_and_every_face_right() {
+        let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+        let set = EvalSet::build(None, 0, 4, &sample_config(&cfg), cfg.max_faces).unwrap();
+        let q = Quantizer::new(128).unwrap();
+        let metric = MetricOptions { samples: 2000, ..MetricOptions::default() };
+        let truth: Vec<Vec<FaceToken>> = set.items.iter().map(|(_, s)| s.faces.clone()).collect();
+        let scores = score(&set, &truth, q, &metric);
+        assert_eq!((scores.exact, scores.face_count_error), (4, 0.0));
+        assert_eq!(summarize_faces(&scores.face_matches).recall_mean, Some(1.0));
+
+        // Dropping each mesh's last face: not exact, one face short of every mesh.
+        let short: Vec<Vec<FaceToken>> = truth.iter().map(|f| f[..f.len() - 1].to_vec()).collect();
+        let scores = score(&set, &short, q, &metric);
+        assert_eq!(scores.exact, 0);
+        for (m, (_, s)) in scores.face_matches.iter().zip(&set.items) {
+            assert_eq!((m.matched, m.predicted), (s.faces.len() - 1, s.faces.len() - 1));
+        }
     }
 
     #[test]

@@ -352,7 +352,7 @@ pub fn eval_line(step: u64, r: &EvalReport) -> String {
     });
     format!(
         "eval @ {step}: loss {:.3} ({} with other meshes' points), CD {}, HD {}, failures {}/{}, \
-         exact {}, face-count error {:.2}{by_source}",
+         exact {}, faces right {}, face-count error {:.2}{by_source}",
         r.loss,
         r.loss_other_points.map_or_else(|| "-".into(), |v| format!("{v:.3}")),
         opt(r.chamfer_mean),
@@ -360,6 +360,7 @@ pub fn eval_line(step: u64, r: &EvalReport) -> String {
         r.failures,
         r.meshes,
         r.exact,
+        r.faces_right.map_or_else(|| "-".into(), |v| format!("{:.1}%", 100.0 * v)),
         r.face_count_error
     )
 }
