@@ -129,6 +129,10 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
         "--json",
     ]);
     assert_eq!(loose["faces"]["exact"], 2);
+    let negative =
+        meshstream(&["eval", "--pred", path(&pred), "--gt", path(&gt), "--face-tolerance=-1"]);
+    assert!(!negative.status.success());
+    assert!(String::from_utf8_lossy(&negative.stderr).contains("--face-tolerance"));
 }
 
 #[test]

@@ -52,6 +52,10 @@ struct Row {
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.face_tolerance.is_finite() && args.face_tolerance >= 0.0,
+        "--face-tolerance must be a finite distance, not negative"
+    );
     let pairs = pair_up(&args.pred, &args.gt)?;
     let opts = MetricOptions { samples: args.samples, seed: args.seed };
     let (records, faces): (Vec<EvalRecord>, Vec<Option<FaceMatch>>) = pairs
@@ -133,7 +137,8 @@ fn evaluate_pair(
     let pred = load_mesh(pred).map_err(|e| format!("unreadable prediction: {e:#}"))?;
     let gt = load_mesh(gt).map_err(|e| format!("unreadable ground truth: {e:#}"))?;
     let distances = mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())?;
-    // The distances passed, so both meshes are valid: only a faceless ground truth is left.
+    // The distances passed and `run` checked the tolerance: only a faceless ground truth is
+    // left to fail.
     Ok((distances, face_match(&pred, &gt, face_tolerance).ok()))
 }
 
