@@ -162,7 +162,7 @@ pub fn evaluate(
 struct Scores {
     /// Distances per mesh, in the set's order.
     records: Vec<EvalRecord>,
-    /// For every reconstruction that has faces.
+    /// For every reconstruction; one without faces has none right, counted rather than dropped.
     face_matches: Vec<FaceMatch>,
     /// Mean of |predicted faces - true faces| / true faces.
     face_count_error: f64,
@@ -183,7 +183,10 @@ fn score(
         scores.exact += usize::from(*faces == sample.faces);
         let pred = detokenize(faces, q);
         let result = mesh_distances(&pred, gt, metric).map_err(|e| e.to_string());
-        scores.face_matches.extend(face_match(&pred, gt, DEFAULT_FACE_TOLERANCE).ok());
+        let nothing_right = FaceMatch { matched: 0, predicted: faces.len(), truth: gt.faces.len() };
+        scores
+            .face_matches
+            .push(face_match(&pred, gt, DEFAULT_FACE_TOLERANCE).unwrap_or(nothing_right));
         scores.records.push(EvalRecord { name: sample.name.clone(), result });
     }
     if !set.items.is_empty() {
@@ -326,7 +329,7 @@ mod tests {
     }
 
     #[test]
-    fn the_ground_truths_own_faces_score_exact_and_every_face_right() {
+    fn scores_of_the_ground_truths_own_faces_of_them_one_short_and_of_none() {
         let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
         let set = EvalSet::build(None, 0, 4, &sample_config(&cfg), cfg.max_faces).unwrap();
         let q = Quantizer::new(128).unwrap();
@@ -343,6 +346,11 @@ mod tests {
         for (m, (_, s)) in scores.face_matches.iter().zip(&set.items) {
             assert_eq!((m.matched, m.predicted), (s.faces.len() - 1, s.faces.len() - 1));
         }
+
+        // Empty reconstructions are failures, and count as nothing right.
+        let scores = score(&set, &vec![Vec::new(); 4], q, &metric);
+        assert_eq!(summarize(&scores.records).failures, 4);
+        assert_eq!(summarize_faces(&scores.face_matches).recall_mean, Some(0.0));
     }
 
     #[test]
