@@ -117,7 +117,7 @@ pub fn face_match(pred: &Mesh, gt: &Mesh, tolerance: f32) -> Result<FaceMatch, M
 type Triangle = [[f32; 3]; 3];
 
 fn triangles(mesh: &Mesh) -> Vec<Triangle> {
-    mesh.faces.iter().map(|f| f.map(|i| mesh.vertices[i as usize])).collect()
+    mesh.faces.iter().map(|f| mesh.triangle(f)).collect()
 }
 
 fn centroid(t: &Triangle) -> [f32; 3] {
