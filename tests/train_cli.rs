@@ -1,48 +1,20 @@
 //! The `meshstream-train` binary end to end: a short run on a small slice of the data set,
 //! a checkpoint, a resume that continues exactly, an export and a plot.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod training;
+
+use std::path::Path;
 
 use meshstream::train::log::{LogRecord, read_log};
+use training::{Start, data_slice, export, train_bin};
 
-fn train_bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_meshstream-train"))
-}
-
-/// A few small meshes of the shared data set, copied with a manifest into a temporary folder;
-/// `None` (and a message) when the data set is absent.
-fn data_slice(dir: &Path) -> Option<PathBuf> {
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/lowpoly");
-    if !shared.is_dir() {
-        eprintln!(
-            "SKIPPED (data slice): {} is absent; training on procedural shapes only",
-            shared.display()
-        );
-        return None;
-    }
-    let slice = dir.join("slice");
-    std::fs::create_dir_all(&slice).unwrap();
-    let mut manifest = String::from("file,split\n");
-    for (name, split) in [
-        ("kaykit-city-builder__box_A.ply", "train"),
-        ("kaykit-city-builder__box_B.ply", "train"),
-        ("kaykit-city-builder__bench.ply", "train"),
-        ("kaykit-city-builder__base.ply", "dev"),
-    ] {
-        std::fs::copy(shared.join(name), slice.join(name)).unwrap();
-        manifest.push_str(&format!("{name},{split}\n"));
-    }
-    std::fs::write(slice.join("manifest.csv"), manifest).unwrap();
-    Some(slice)
-}
-
-/// How a run starts: fresh random weights, the weights of an exported model, or a resume.
-enum Start<'a> {
-    Fresh,
-    Init(&'a Path),
-    Resume,
-}
+/// Three small training meshes and one to evaluate on.
+const SLICE: [(&str, &str); 4] = [
+    ("kaykit-city-builder__box_A.ply", "train"),
+    ("kaykit-city-builder__box_B.ply", "train"),
+    ("kaykit-city-builder__bench.ply", "train"),
+    ("kaykit-city-builder__base.ply", "dev"),
+];
 
 fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) {
     let mut cmd = train_bin();
@@ -52,12 +24,7 @@ fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) 
         "--out",
         out.to_str().unwrap(),
     ]);
-    if let Start::Resume = start {
-        cmd.arg("--resume");
-    } else {
-        if let Start::Init(model) = start {
-            cmd.args(["--init", model.to_str().unwrap()]);
-        }
+    if start.add_to(&mut cmd) {
         cmd.args(["--max-faces", "60", "--curriculum", "0:60", "--batch-faces", "120"])
             .args(["--warmup", "4", "--checkpoint-every", "4", "--eval-every", "1000"])
             .args(["--eval-meshes", "1", "--eval-procedural", "1", "--eval-samples", "2000"]);
@@ -71,14 +38,6 @@ fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) 
         "meshstream-train failed:\n{}",
         String::from_utf8_lossy(&output.stderr)
     );
-}
-
-fn export(from: &Path, to: &Path, dtype: &str) {
-    let status = train_bin()
-        .args(["export", from.to_str().unwrap(), "-o", to.to_str().unwrap(), "--dtype", dtype])
-        .status()
-        .unwrap();
-    assert!(status.success());
 }
 
 fn step_losses(log: &Path) -> Vec<(u64, f64)> {
@@ -95,7 +54,7 @@ fn step_losses(log: &Path) -> Vec<(u64, f64)> {
 #[test]
 fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = data_slice(tmp.path());
+    let data = data_slice(tmp.path(), &SLICE);
 
     // candle cannot seed its CPU initializer, so both runs start from one exported set of
     // random weights (a run of 0 steps, exported at full precision).

@@ -2,61 +2,29 @@
 //! autoencoder: latent cache, a checkpoint, a resume that continues exactly, evaluation,
 //! export in the diffusion checkpoint format, and a plot.
 
+mod training;
+
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use meshstream::train::log::{LogRecord, read_log};
+use training::{Start, data_slice, export, train_bin};
 
-fn train_bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_meshstream-train"))
-}
+/// Two small training meshes and one to evaluate on.
+const SLICE: [(&str, &str); 3] = [
+    ("kaykit-city-builder__box_A.ply", "train"),
+    ("kaykit-city-builder__bench.ply", "train"),
+    ("kaykit-city-builder__base.ply", "dev"),
+];
 
 fn autoencoder() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default")
-}
-
-/// A few small meshes of the shared data set with a manifest, in a temporary folder; `None`
-/// (and a message) when the data set is absent.
-fn data_slice(dir: &Path) -> Option<PathBuf> {
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/lowpoly");
-    if !shared.is_dir() {
-        eprintln!(
-            "SKIPPED (data slice): {} is absent; training on procedural shapes only",
-            shared.display()
-        );
-        return None;
-    }
-    let slice = dir.join("slice");
-    std::fs::create_dir_all(&slice).unwrap();
-    let mut manifest = String::from("file,split\n");
-    for (name, split) in [
-        ("kaykit-city-builder__box_A.ply", "train"),
-        ("kaykit-city-builder__bench.ply", "train"),
-        ("kaykit-city-builder__base.ply", "dev"),
-    ] {
-        std::fs::copy(shared.join(name), slice.join(name)).unwrap();
-        manifest.push_str(&format!("{name},{split}\n"));
-    }
-    std::fs::write(slice.join("manifest.csv"), manifest).unwrap();
-    Some(slice)
-}
-
-enum Start<'a> {
-    Fresh,
-    Init(&'a Path),
-    Resume,
 }
 
 fn run(out: &Path, data: Option<&Path>, stop_at: u64, start: Start) -> String {
     let mut cmd = train_bin();
     cmd.args(["dit", "--no-progress", "--steps", "8", "--stop-at", &stop_at.to_string()])
         .args(["--out", out.to_str().unwrap()]);
-    if let Start::Resume = start {
-        cmd.arg("--resume");
-    } else {
-        if let Start::Init(model) = start {
-            cmd.args(["--init", model.to_str().unwrap()]);
-        }
+    if start.add_to(&mut cmd) {
         cmd.args(["--ae", autoencoder().to_str().unwrap(), "--width", "32", "--layers", "1"])
             .args(["--procedural", "3", "--augmentations", "2", "--views", "2", "--batch", "4"])
             .args(["--lr", "1e-3", "--warmup", "2", "--checkpoint-every", "3"])
@@ -70,14 +38,6 @@ fn run(out: &Path, data: Option<&Path>, stop_at: u64, start: Start) -> String {
     let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
     assert!(output.status.success(), "meshstream-train dit failed:\n{stderr}");
     stderr
-}
-
-fn export(from: &Path, to: &Path, dtype: &str) {
-    let status = train_bin()
-        .args(["export", from.to_str().unwrap(), "-o", to.to_str().unwrap(), "--dtype", dtype])
-        .status()
-        .unwrap();
-    assert!(status.success());
 }
 
 fn step_losses(log: &Path) -> Vec<(u64, f64)> {
@@ -98,7 +58,7 @@ fn train_json(run: &Path) -> serde_json::Value {
 #[test]
 fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = data_slice(tmp.path());
+    let data = data_slice(tmp.path(), &SLICE);
 
     // candle cannot seed its CPU initializer, so both runs start from one exported set of
     // random weights (a run of 0 steps, exported at full precision).

@@ -1,6 +1,7 @@
 //! `meshstream-train`: train FACE autoencoders and image-to-latent diffusion models, export
 //! their weights, plot their curves.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
@@ -14,7 +15,7 @@ use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::checkpoint::{RunDir, export};
 use meshstream::train::dit::DitTrainConfig;
 use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
-use meshstream::train::dit::evaluate::{DitEvalOptions, eval_line as dit_eval_line};
+use meshstream::train::dit::evaluate::DitEvalOptions;
 use meshstream::train::dit::trainer::DitTrainer;
 use meshstream::train::dit::views::ViewConfig;
 use meshstream::train::evaluate::HELD_OUT_PROCEDURAL_SEED;
@@ -23,7 +24,8 @@ use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
 use meshstream::train::procedural::{ProceduralShapes, ShapeKind};
 use meshstream::train::run_loop::Plan;
-use meshstream::train::trainer::{TrainConfig, Trainer, eval_line, stop_flag_on_ctrl_c};
+use meshstream::train::run_loop::{self, Steps};
+use meshstream::train::trainer::{TrainConfig, Trainer, stop_flag_on_ctrl_c};
 
 /// Train FACE models on your meshes (and on procedural low-poly shapes), export the weights
 /// that `meshstream` serves, and plot training curves.
@@ -344,32 +346,11 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
         Trainer::resume(args.out.clone(), device, Some(args.steps))
             .with_context(|| format!("resuming {}", args.out.display()))?
     } else {
-        if RunDir(args.out.clone()).checkpoint().exists() {
-            bail!(
-                "{} already holds a run: pass --resume, or choose another --out",
-                args.out.display()
-            );
-        }
+        refuse_to_overwrite(&args.out)?;
         Trainer::create(config_from_args(args)?, args.out.clone(), args.init.as_deref(), device)?
     };
-    eprintln!("{}", trainer.data_summary());
-    let mut counts: Vec<_> = trainer.parameter_counts().into_iter().collect();
-    counts.sort();
-    eprintln!("parameters by optimizer: {counts:?}");
-    let stop = stop_flag_on_ctrl_c();
-    let summary = trainer.run(&stop, args.stop_at, !args.no_progress)?;
-    let state = &summary.state;
-    eprintln!(
-        "{} at step {} after {:.0} s of training; checkpoint in {}",
-        if summary.interrupted || state.step < args.steps { "stopped" } else { "finished" },
-        state.step,
-        state.elapsed_s,
-        RunDir(args.out.clone()).checkpoint().display()
-    );
-    if let Some((step, report)) = &summary.last_eval {
-        eprintln!("{}", eval_line(*step, report));
-    }
-    Ok(())
+    print_setup(&trainer.data_summary(), trainer.parameter_counts());
+    run_session(&mut trainer, &args.out, args.steps, args.stop_at, !args.no_progress)
 }
 
 fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
@@ -379,31 +360,50 @@ fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
         DitTrainer::resume(args.out.clone(), device, Some(args.steps))
             .with_context(|| format!("resuming {}", args.out.display()))?
     } else {
-        if RunDir(args.out.clone()).checkpoint().exists() {
-            bail!(
-                "{} already holds a run: pass --resume, or choose another --out",
-                args.out.display()
-            );
-        }
+        refuse_to_overwrite(&args.out)?;
         let cfg = dit_config_from_args(args)?;
         DitTrainer::create(cfg, args.out.clone(), args.init.as_deref(), device, progress)?
     };
-    eprintln!("{}", trainer.data_summary());
-    let mut counts: Vec<_> = trainer.parameter_counts().into_iter().collect();
+    print_setup(&trainer.data_summary(), trainer.parameter_counts());
+    run_session(&mut trainer, &args.out, args.steps, args.stop_at, progress)
+}
+
+/// A new run may not start in a folder that already holds one.
+fn refuse_to_overwrite(out: &Path) -> anyhow::Result<()> {
+    if RunDir(out.to_path_buf()).checkpoint().exists() {
+        bail!("{} already holds a run: pass --resume, or choose another --out", out.display());
+    }
+    Ok(())
+}
+
+fn print_setup(data_summary: &str, parameter_counts: HashMap<&'static str, usize>) {
+    eprintln!("{data_summary}");
+    let mut counts: Vec<_> = parameter_counts.into_iter().collect();
     counts.sort();
     eprintln!("parameters by optimizer: {counts:?}");
+}
+
+/// Trains until `steps`, `stop_at` or Ctrl-C, then says how the session ended and what its
+/// last evaluation found.
+fn run_session<T: Steps>(
+    trainer: &mut T,
+    out: &Path,
+    steps: u64,
+    stop_at: Option<u64>,
+    progress: bool,
+) -> anyhow::Result<()> {
     let stop = stop_flag_on_ctrl_c();
-    let summary = trainer.run(&stop, args.stop_at, progress)?;
+    let summary = run_loop::run(trainer, &stop, stop_at, progress)?;
     let state = &summary.state;
     eprintln!(
         "{} at step {} after {:.0} s of training; checkpoint in {}",
-        if summary.interrupted || state.step < args.steps { "stopped" } else { "finished" },
+        if summary.interrupted || state.step < steps { "stopped" } else { "finished" },
         state.step,
         state.elapsed_s,
-        RunDir(args.out.clone()).checkpoint().display()
+        RunDir(out.to_path_buf()).checkpoint().display()
     );
     if let Some((step, report)) = &summary.last_eval {
-        eprintln!("{}", dit_eval_line(*step, report));
+        eprintln!("{}", T::report_line(*step, report));
     }
     Ok(())
 }

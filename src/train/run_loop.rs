@@ -36,8 +36,8 @@ pub trait Steps {
     type Session;
     type Report;
 
-    /// Steps taken so far.
-    fn step_index(&self) -> u64;
+    /// Steps taken so far, and the training time they took.
+    fn state(&self) -> &TrainState;
     fn plan(&self) -> &Plan;
     fn begin(&mut self) -> Result<Self::Session, TrainError>;
     /// One optimizer step (logged); returns the progress bar's message.
@@ -87,7 +87,9 @@ pub fn update(
 }
 
 /// How a session ended.
-pub struct Outcome<R> {
+#[derive(Debug, Clone)]
+pub struct RunSummary<R> {
+    pub state: TrainState,
     /// Stopped by a stop request rather than the schedule or `stop_at`.
     pub interrupted: bool,
     /// The last evaluation, with its step.
@@ -101,29 +103,29 @@ pub fn run<T: Steps>(
     stop: &AtomicBool,
     stop_at: Option<u64>,
     progress: bool,
-) -> Result<Outcome<T::Report>, TrainError> {
+) -> Result<RunSummary<T::Report>, TrainError> {
     let (steps, eval_every, checkpoint_every) = {
         let plan = trainer.plan();
         (plan.steps, plan.eval_every.max(1), plan.checkpoint_every.max(1))
     };
     let end = stop_at.map_or(steps, |s| s.min(steps));
-    let bar = progress_bar(trainer.step_index(), steps, progress);
+    let bar = progress_bar(trainer.state().step, steps, progress);
     let mut session = trainer.begin()?;
-    let mut outcome = Outcome { interrupted: false, last_eval: None };
-    while trainer.step_index() < end {
+    let (mut interrupted, mut last_eval) = (false, None);
+    while trainer.state().step < end {
         if stop.load(Ordering::SeqCst) {
-            outcome.interrupted = true;
+            interrupted = true;
             break;
         }
         let message = trainer.train_step(&mut session)?;
-        let step = trainer.step_index();
+        let step = trainer.state().step;
         bar.set_position(step);
         bar.set_message(message);
         if (step.is_multiple_of(eval_every) || step == end)
             && let Some(report) = bar.suspend(|| trainer.evaluate())?
         {
             bar.println(T::report_line(step, &report));
-            outcome.last_eval = Some((step, report));
+            last_eval = Some((step, report));
         }
         if step.is_multiple_of(checkpoint_every) {
             trainer.save_checkpoint()?;
@@ -131,7 +133,7 @@ pub fn run<T: Steps>(
     }
     trainer.save_checkpoint()?;
     bar.finish_and_clear();
-    Ok(outcome)
+    Ok(RunSummary { state: trainer.state().clone(), interrupted, last_eval })
 }
 
 fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {

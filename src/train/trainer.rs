@@ -45,16 +45,6 @@ pub struct TrainConfig {
     pub eval_metric_samples: usize,
 }
 
-/// How a run ended.
-#[derive(Debug, Clone)]
-pub struct RunSummary {
-    pub state: TrainState,
-    /// Stopped by Ctrl-C.
-    pub interrupted: bool,
-    /// The last evaluation of this session and the step it was made at.
-    pub last_eval: Option<(u64, EvalReport)>,
-}
-
 pub struct Trainer {
     cfg: TrainConfig,
     dir: RunDir,
@@ -178,27 +168,6 @@ impl Trainer {
         self.optimizer.counts()
     }
 
-    pub fn state(&self) -> &TrainState {
-        &self.state
-    }
-
-    /// Trains until the configured step count, or until `stop` is set (Ctrl-C); checkpoints
-    /// every `checkpoint_every` steps and at the end, evaluates every `eval_every` steps and
-    /// at the end, and keeps the best export by evaluation Chamfer distance.
-    ///
-    /// `stop_at` ends this session early at that step (checkpointed, to be resumed), without
-    /// changing the schedule, which always spans the configured step count.
-    pub fn run(
-        &mut self,
-        stop: &AtomicBool,
-        stop_at: Option<u64>,
-        progress: bool,
-    ) -> Result<RunSummary, TrainError> {
-        let outcome = run_loop::run(self, stop, stop_at, progress)?;
-        let (interrupted, last_eval) = (outcome.interrupted, outcome.last_eval);
-        Ok(RunSummary { state: self.state.clone(), interrupted, last_eval })
-    }
-
     /// Evaluates the current weights, logs the report, and exports them to `best/` when
     /// their Chamfer distance is the lowest so far.
     pub fn evaluate_and_keep_best(&mut self) -> Result<EvalReport, TrainError> {
@@ -249,8 +218,8 @@ impl run_loop::Steps for Trainer {
     type Session = AeSession;
     type Report = EvalReport;
 
-    fn step_index(&self) -> u64 {
-        self.state.step
+    fn state(&self) -> &TrainState {
+        &self.state
     }
 
     fn plan(&self) -> &run_loop::Plan {

@@ -6,7 +6,6 @@
 //! pairs and the flow-matching noise it would have drawn, so no RNG state is saved.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
@@ -31,16 +30,6 @@ use super::{DitTrainConfig, MIN_LATENT_STD};
 
 /// Keeps the batch stream apart from the cache's streams, which use the same seed.
 const BATCH_STREAM_OFFSET: u64 = 1 << 40;
-
-/// How a session ended.
-#[derive(Debug, Clone)]
-pub struct DitRunSummary {
-    pub state: TrainState,
-    /// Stopped by Ctrl-C.
-    pub interrupted: bool,
-    /// The last evaluation of this session and the step it was made at.
-    pub last_eval: Option<(u64, DitEvalReport)>,
-}
 
 pub struct DitTrainer {
     cfg: DitTrainConfig,
@@ -216,10 +205,6 @@ impl DitTrainer {
         self.optimizer.counts()
     }
 
-    pub fn state(&self) -> &TrainState {
-        &self.state
-    }
-
     /// The (latents, images) batch of `step` and the random stream its loss continues with.
     fn batch(&self, step: u64) -> Result<(Tensor, Tensor, ChaCha8Rng), TrainError> {
         let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
@@ -239,22 +224,6 @@ impl DitTrainer {
         let latents = Tensor::from_vec(latents, (images.len(), k, d), &self.device)?;
         let size = self.cache.info.spec.view.size as usize;
         Ok((latents, images_tensor(&images, size, &self.device)?, rng))
-    }
-
-    /// Trains until the configured step count, or until `stop` is set (Ctrl-C); checkpoints
-    /// every `checkpoint_every` steps and at the end, evaluates every `eval_every` steps and
-    /// at the end, and keeps the best export by evaluation Chamfer distance. `stop_at` ends
-    /// this session early at that step (checkpointed, to be resumed); the schedule always
-    /// spans the configured step count.
-    pub fn run(
-        &mut self,
-        stop: &AtomicBool,
-        stop_at: Option<u64>,
-        progress: bool,
-    ) -> Result<DitRunSummary, TrainError> {
-        let outcome = run_loop::run(self, stop, stop_at, progress)?;
-        let (interrupted, last_eval) = (outcome.interrupted, outcome.last_eval);
-        Ok(DitRunSummary { state: self.state.clone(), interrupted, last_eval })
     }
 
     /// Evaluates the current weights (none when the evaluation set is empty), logs the report,
@@ -294,8 +263,8 @@ impl run_loop::Steps for DitTrainer {
     type Session = DitSession;
     type Report = DitEvalReport;
 
-    fn step_index(&self) -> u64 {
-        self.state.step
+    fn state(&self) -> &TrainState {
+        &self.state
     }
 
     fn plan(&self) -> &run_loop::Plan {
