@@ -91,6 +91,13 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     export(&resumed, &model, "f16");
     let loaded = meshstream::model::checkpoint::load(&model, &candle_core::Device::Cpu).unwrap();
     assert_eq!(loaded.config().max_faces, 60);
+    #[cfg(unix)]
+    {
+        // Whoever may read the config may read the weights (safetensors alone writes 0600).
+        use std::os::unix::fs::PermissionsExt;
+        let mode = |f: &str| std::fs::metadata(model.join(f)).unwrap().permissions().mode();
+        assert_eq!(mode("model.safetensors"), mode("config.json"));
+    }
 
     let png = tmp.path().join("curves.png");
     let status = train_bin()

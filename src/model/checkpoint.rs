@@ -49,9 +49,19 @@ pub(crate) fn save_checkpoint<C: serde::Serialize>(
         message: e.to_string(),
     })?;
     std::fs::write(&cfg_path, json).map_err(io_err(&cfg_path))?;
-    let weights = detached_weights(varmap);
-    candle_core::safetensors::save(&weights, dir.join(WEIGHTS_FILE))?;
-    Ok(())
+    save_weights(&detached_weights(varmap), dir)
+}
+
+/// Writes `model.safetensors` into `dir`, readable by whoever may read its `config.json`
+/// (written first). safetensors 0.8 writes through a temporary file, always mode 0600, so a
+/// model exported by one user (root in a build container, say) would be unreadable to the user
+/// that serves it (safetensors issue #782); the config's mode is what the umask gives.
+pub(crate) fn save_weights(weights: &HashMap<String, Tensor>, dir: &Path) -> Result<()> {
+    let path = dir.join(WEIGHTS_FILE);
+    candle_core::safetensors::save(weights, &path)?;
+    let cfg_path = dir.join(CONFIG_FILE);
+    let permissions = std::fs::metadata(&cfg_path).map_err(io_err(&cfg_path))?.permissions();
+    std::fs::set_permissions(&path, permissions).map_err(io_err(&path))
 }
 
 /// Reads and validates `config.json`.
@@ -260,6 +270,20 @@ mod tests {
         load_into_varmap(dir.path(), &fresh, &Device::Cpu).unwrap();
         let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn the_weights_are_as_readable_as_the_config() {
+        use std::os::unix::fs::PermissionsExt;
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &cfg, &varmap).unwrap();
+        let mode = |file: &str| {
+            std::fs::metadata(dir.path().join(file)).unwrap().permissions().mode() & 0o777
+        };
+        assert_eq!(mode(WEIGHTS_FILE), mode(CONFIG_FILE));
     }
 
     #[test]

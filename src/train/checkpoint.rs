@@ -146,6 +146,6 @@ pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
     std::fs::create_dir_all(to).map_err(io(to))?;
     let cfg_path = to.join(model_checkpoint::CONFIG_FILE);
     std::fs::write(&cfg_path, json).map_err(io(&cfg_path))?;
-    candle_core::safetensors::save(&converted, to.join(model_checkpoint::WEIGHTS_FILE))?;
+    model_checkpoint::save_weights(&converted, to)?;
     Ok(())
 }
