@@ -42,6 +42,19 @@ pub(crate) fn save_checkpoint<C: serde::Serialize>(
     cfg: &C,
     varmap: &VarMap,
 ) -> Result<()> {
+    write_model_dir(dir, cfg, &detached_weights(varmap))
+}
+
+/// Writes `config.json` and `model.safetensors` into `dir` (created if needed), the weights
+/// readable by whoever may read the config. safetensors 0.8 writes through a temporary file,
+/// always mode 0600, so a model exported by one user (root in a build container, say) would be
+/// unreadable to the user that serves it (safetensors issue #782); the config's mode is what
+/// the umask gives.
+pub(crate) fn write_model_dir<C: serde::Serialize>(
+    dir: &Path,
+    cfg: &C,
+    weights: &HashMap<String, Tensor>,
+) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     let cfg_path = dir.join(CONFIG_FILE);
     let json = serde_json::to_string_pretty(cfg).map_err(|e| ModelError::BadCheckpoint {
@@ -49,17 +62,8 @@ pub(crate) fn save_checkpoint<C: serde::Serialize>(
         message: e.to_string(),
     })?;
     std::fs::write(&cfg_path, json).map_err(io_err(&cfg_path))?;
-    save_weights(&detached_weights(varmap), dir)
-}
-
-/// Writes `model.safetensors` into `dir`, readable by whoever may read its `config.json`
-/// (written first). safetensors 0.8 writes through a temporary file, always mode 0600, so a
-/// model exported by one user (root in a build container, say) would be unreadable to the user
-/// that serves it (safetensors issue #782); the config's mode is what the umask gives.
-pub(crate) fn save_weights(weights: &HashMap<String, Tensor>, dir: &Path) -> Result<()> {
     let path = dir.join(WEIGHTS_FILE);
     candle_core::safetensors::save(weights, &path)?;
-    let cfg_path = dir.join(CONFIG_FILE);
     let permissions = std::fs::metadata(&cfg_path).map_err(io_err(&cfg_path))?.permissions();
     std::fs::set_permissions(&path, permissions).map_err(io_err(&path))
 }

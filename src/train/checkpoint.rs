@@ -129,23 +129,27 @@ pub fn load_weights(dir: &Path, varmap: &VarMap, device: &Device) -> Result<(), 
 /// a checkpoint or model directory of a face autoencoder or a diffusion model, with the
 /// weights stored as `dtype` (F16 halves the size).
 pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
-    let json = match model_checkpoint::load_config(from) {
-        Ok(face) => serde_json::to_string_pretty(&face),
+    let cfg = match model_checkpoint::load_config(from) {
+        Ok(face) => AnyConfig::Face(face),
         Err(face_err) => match crate::diffusion::checkpoint::load_config(from) {
-            Ok(dit) => serde_json::to_string_pretty(&dit),
+            Ok(dit) => AnyConfig::Dit(Box::new(dit)),
             Err(_) => return Err(face_err.into()),
         },
-    }
-    .map_err(|e| TrainError::Json(e.to_string()))?;
+    };
     let src = from.join(model_checkpoint::WEIGHTS_FILE);
     let tensors = candle_core::safetensors::load(&src, &Device::Cpu)?;
     let converted = tensors
         .into_iter()
         .map(|(name, t)| Ok((name, t.to_dtype(dtype)?)))
         .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
-    std::fs::create_dir_all(to).map_err(io(to))?;
-    let cfg_path = to.join(model_checkpoint::CONFIG_FILE);
-    std::fs::write(&cfg_path, json).map_err(io(&cfg_path))?;
-    model_checkpoint::save_weights(&converted, to)?;
+    model_checkpoint::write_model_dir(to, &cfg, &converted)?;
     Ok(())
+}
+
+/// The configuration of either kind of model, written as the model's own.
+#[derive(Serialize)]
+#[serde(untagged)]
+enum AnyConfig {
+    Face(crate::model::FaceConfig),
+    Dit(Box<crate::diffusion::DitConfig>),
 }
