@@ -129,6 +129,22 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
         "--json",
     ]);
     assert_eq!(loose["faces"]["exact"], 2);
+
+    // Against another prediction folder: a is exact there and d shifted twice as far, so each
+    // side is closer on one of the two meshes both predicted; b and c fail in --pred.
+    let other = dir.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    write_mesh_file(&cube, &other.join("a.glb"), None).unwrap();
+    write_mesh_file(&cube.clone().translated([0.2, 0.0, 0.0]), &other.join("d.obj"), None).unwrap();
+    let pred_args = ["eval", "--pred", path(&pred), "--gt", path(&gt), "--against", path(&other)];
+    let v = ok_json(&[&pred_args[..], &["--json"]].concat());
+    let paired = &v["against"]["paired"];
+    assert_eq!((paired["pairs"].clone(), paired["unpaired"].clone()), (2.into(), 2.into()));
+    assert_eq!((paired["a_better"].clone(), paired["b_better"].clone()), (1.into(), 1.into()));
+    assert!(paired["mean"].as_f64().unwrap() < 0.0, "d gains more than a loses: {paired}");
+    assert_eq!(v["against"]["summary"]["failures"], 2, "b and c are missing there");
+    let text = meshstream(&pred_args);
+    assert!(String::from_utf8_lossy(&text.stdout).contains("paired CD"));
     let negative =
         meshstream(&["eval", "--pred", path(&pred), "--gt", path(&gt), "--face-tolerance=-1"]);
     assert!(!negative.status.success());
