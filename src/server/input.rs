@@ -38,6 +38,10 @@ pub struct ReconstructOptions {
 }
 
 /// `POST /reconstruct` with `Content-Type: application/json`.
+///
+/// The fields of [`ReconstructOptions`] are repeated rather than `#[serde(flatten)]`ed: serde
+/// does not support `deny_unknown_fields` with `flatten`, and a misspelt option must be an
+/// error, not a silent default.
 #[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PointsBody {
