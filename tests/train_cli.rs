@@ -6,7 +6,7 @@ mod training;
 use std::path::Path;
 
 use meshstream::train::log::{LogRecord, read_log};
-use training::{Start, data_slice, export, train_bin};
+use training::{Start, assert_plots, data_slice, export, train_bin};
 
 /// Three small training meshes and one to evaluate on.
 const SLICE: [(&str, &str); 4] = [
@@ -99,13 +99,7 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
         assert_eq!(mode("model.safetensors"), mode("config.json"));
     }
 
-    let png = tmp.path().join("curves.png");
-    let status = train_bin()
-        .args(["plot", resumed.join("log.jsonl").to_str().unwrap(), "-o", png.to_str().unwrap()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    assert_plots(&resumed, &tmp.path().join("curves.png"));
 }
 
 #[test]

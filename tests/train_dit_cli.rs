@@ -7,7 +7,7 @@ mod training;
 use std::path::{Path, PathBuf};
 
 use meshstream::train::log::{LogRecord, read_log};
-use training::{Start, data_slice, export, train_bin};
+use training::{Start, assert_plots, data_slice, export, train_bin};
 
 /// Two small training meshes and one to evaluate on.
 const SLICE: [(&str, &str); 3] = [
@@ -118,13 +118,7 @@ fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
         serde_json::from_value(stats.clone()).unwrap();
     assert_eq!(loaded.config().latent_stats, trained);
 
-    let png = tmp.path().join("curves.png");
-    let status = train_bin()
-        .args(["plot", resumed.join("log.jsonl").to_str().unwrap(), "-o", png.to_str().unwrap()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    assert_plots(&resumed, &tmp.path().join("curves.png"));
 }
 
 #[test]

@@ -64,3 +64,13 @@ pub fn export(from: &Path, to: &Path, dtype: &str) {
         .unwrap();
     assert!(status.success());
 }
+
+/// `meshstream-train plot` draws the run's log as a PNG.
+pub fn assert_plots(run: &Path, png: &Path) {
+    let status = train_bin()
+        .args(["plot", run.join("log.jsonl").to_str().unwrap(), "-o", png.to_str().unwrap()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert!(std::fs::read(png).unwrap().starts_with(b"\x89PNG"));
+}
