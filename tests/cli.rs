@@ -149,6 +149,10 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
         meshstream(&["eval", "--pred", path(&pred), "--gt", path(&gt), "--face-tolerance=-1"]);
     assert!(!negative.status.success());
     assert!(String::from_utf8_lossy(&negative.stderr).contains("--face-tolerance"));
+    let missing = dir.path().join("no-such-folder");
+    let no_gt = meshstream(&["eval", "--pred", path(&pred), "--gt", path(&missing)]);
+    assert!(!no_gt.status.success());
+    assert!(String::from_utf8_lossy(&no_gt.stderr).contains("does not exist"), "{no_gt:?}");
 }
 
 #[test]

@@ -126,6 +126,7 @@ fn evaluate_all(
 
 /// (name, prediction if found, ground truth) for every ground-truth mesh.
 fn pair_up(pred: &Path, gt: &Path) -> anyhow::Result<Vec<(String, Option<PathBuf>, PathBuf)>> {
+    anyhow::ensure!(gt.exists(), "--gt {} does not exist", gt.display());
     if !gt.is_dir() {
         anyhow::ensure!(!pred.is_dir(), "--pred is a folder but --gt is a single file");
         return Ok(vec![(display_name(gt), pred.exists().then(|| pred.to_path_buf()), gt.into())]);

@@ -52,6 +52,22 @@ pub struct TrainState {
     pub elapsed_s: f64,
 }
 
+impl TrainState {
+    /// Records `chamfer` as the best so far when it is lower than every earlier one (an
+    /// evaluation without a Chamfer distance never is); says whether it was.
+    pub fn record_best(&mut self, chamfer: Option<f64>) -> bool {
+        let better = match (chamfer, self.best_chamfer) {
+            (Some(cd), Some(best)) => cd < best,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if better {
+            self.best_chamfer = chamfer;
+        }
+        better
+    }
+}
+
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
     move |source| TrainError::Io { path: path.to_path_buf(), source }
 }
@@ -152,4 +168,21 @@ pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
 enum AnyConfig {
     Face(crate::model::FaceConfig),
     Dit(Box<crate::diffusion::DitConfig>),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TrainState;
+
+    #[test]
+    fn only_a_lower_chamfer_distance_is_the_new_best() {
+        let mut state = TrainState::default();
+        assert!(!state.record_best(None), "an evaluation without CD is never the best");
+        assert!(state.record_best(Some(0.5)), "the first CD is the best so far");
+        assert!(!state.record_best(Some(0.5)), "a tie keeps the earlier weights");
+        assert!(!state.record_best(Some(0.7)));
+        assert!(!state.record_best(None));
+        assert!(state.record_best(Some(0.3)));
+        assert_eq!(state.best_chamfer, Some(0.3));
+    }
 }

@@ -181,13 +181,7 @@ impl Trainer {
             report: report.clone(),
             elapsed_s: self.state.elapsed_s,
         })?;
-        let better = match (report.chamfer_mean, self.state.best_chamfer) {
-            (Some(cd), Some(best)) => cd < best,
-            (Some(_), None) => true,
-            (None, _) => false,
-        };
-        if better {
-            self.state.best_chamfer = report.chamfer_mean;
+        if self.state.record_best(report.chamfer_mean) {
             model_checkpoint::save(&self.dir.best(), &self.cfg.model, &self.varmap)?;
         }
         Ok(report)
