@@ -17,6 +17,17 @@ const SLICE: [(&str, &str); 4] = [
 ];
 
 fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) {
+    run_with(out, data, steps, stop_at, start, &[]);
+}
+
+fn run_with(
+    out: &Path,
+    data: Option<&Path>,
+    steps: u64,
+    stop_at: u64,
+    start: Start,
+    extra: &[&str],
+) {
     let mut cmd = train_bin();
     cmd.args(["ae", "--preset", "tiny", "--no-progress", "--steps", &steps.to_string()]).args([
         "--stop-at",
@@ -24,6 +35,7 @@ fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) 
         "--out",
         out.to_str().unwrap(),
     ]);
+    cmd.args(extra);
     if start.add_to(&mut cmd) {
         cmd.args(["--max-faces", "60", "--curriculum", "0:60", "--batch-faces", "120"])
             .args(["--warmup", "4", "--checkpoint-every", "4", "--eval-every", "1000"])
@@ -62,6 +74,21 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     run(&init_run, data.as_deref(), 16, 0, Start::Fresh);
     let init = tmp.path().join("init");
     export(&init_run, &init, "f32");
+
+    // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
+    let frozen = tmp.path().join("frozen");
+    run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &["--freeze-encoder"]);
+    let weights = |dir: &Path| {
+        candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
+            .unwrap()
+    };
+    let (before, after) = (weights(&init), weights(&frozen.join("checkpoint")));
+    let unchanged = |name: &String| {
+        let diff = (&before[name] - &after[name]).unwrap().abs().unwrap();
+        diff.max_all().unwrap().to_scalar::<f32>().unwrap() == 0.0
+    };
+    assert!(before.keys().filter(|n| n.starts_with("encoder.")).all(unchanged));
+    assert!(!before.keys().filter(|n| n.starts_with("decoder.layers.")).any(unchanged));
 
     // One run straight through, and one stopped halfway and resumed.
     let straight = tmp.path().join("straight");
@@ -117,6 +144,14 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
         .unwrap();
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("ten:5"));
+
+    // Freezing needs trained weights to keep.
+    let output = train_bin()
+        .args(["ae", "--out", tmp.path().join("y").to_str().unwrap(), "--freeze-encoder"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--init"));
 }
 
 #[test]

@@ -9,7 +9,7 @@ use candle_core::DType;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
 use meshstream::mesh::write_mesh_file;
-use meshstream::model::{FaceConfig, parse_device};
+use meshstream::model::{EncoderTraining, FaceConfig, parse_device};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::checkpoint::{RunDir, export};
@@ -96,6 +96,11 @@ struct AeArgs {
     /// Start from the weights of an exported model with the same configuration.
     #[arg(long, conflicts_with = "resume")]
     init: Option<PathBuf>,
+    /// Keep the encoder of --init as it is and train the decoder and head only: the latent
+    /// space stays the one an image model (the model folder's dit/) was trained on, and a
+    /// step skips the encoder's backward pass.
+    #[arg(long, requires = "init")]
+    freeze_encoder: bool,
     /// Model preset: tiny, base or large.
     #[arg(long, default_value = "tiny")]
     preset: String,
@@ -511,6 +516,11 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         eval_folder_meshes: args.eval_meshes,
         eval_procedural: args.eval_procedural,
         eval_metric_samples: args.eval_samples,
+        encoder: if args.freeze_encoder {
+            EncoderTraining::Frozen
+        } else {
+            EncoderTraining::Trained
+        },
         model,
     })
 }

@@ -129,8 +129,8 @@ fn masked_nll(logits: &Tensor, targets: &Tensor, weights: &Tensor) -> Result<Ten
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::FaceConfig;
     use crate::model::testing::{random_faces, random_model};
+    use crate::model::{EncoderTraining, FaceConfig};
 
     #[test]
     fn padded_loss_is_the_position_weighted_mean_of_row_losses() {
@@ -145,7 +145,7 @@ mod tests {
         let dev = Device::Cpu;
         let loss = |ex: &[TrainExample<'_>]| {
             let batch = TrainBatch::new(ex, &dev).unwrap();
-            model.loss(&batch).unwrap().total.to_scalar::<f32>().unwrap()
+            model.loss(&batch, EncoderTraining::Trained).unwrap().total.to_scalar::<f32>().unwrap()
         };
         let a = loss(&[example(&faces[0])]);
         let b = loss(&[example(&faces[1])]);

@@ -151,7 +151,7 @@ fn a_tiny_model_learns_fixed_meshes_and_reproduces_them_from_points() {
     let started = Instant::now();
     let mut last = f32::MAX;
     for step in 0..300 {
-        let loss = model.loss(&batch).unwrap();
+        let loss = model.loss(&batch, EncoderTraining::Trained).unwrap();
         opt.backward_step(&loss.total).unwrap();
         last = loss.coords.to_scalar::<f32>().unwrap();
         if step % 50 == 0 {

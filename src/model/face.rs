@@ -57,6 +57,18 @@ impl SequenceState {
     }
 }
 
+/// Whether a training pass updates the encoder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EncoderTraining {
+    /// Gradients flow through the latents into the encoder.
+    #[default]
+    Trained,
+    /// The latents are constants: only the decoder and head learn, so the latent space (and an
+    /// image model trained to produce it) stays valid, and the encoder's backward pass is saved.
+    Frozen,
+}
+
 /// What one teacher-forced training pass produced.
 #[derive(Debug, Clone)]
 pub struct TrainLoss {
@@ -245,9 +257,12 @@ impl FaceModel {
     }
 
     /// The training objective on a padded batch (see [`super::TrainBatch`]).
-    pub fn loss(&self, batch: &super::TrainBatch) -> Result<TrainLoss> {
+    pub fn loss(&self, batch: &super::TrainBatch, encoder: EncoderTraining) -> Result<TrainLoss> {
         let enc = self.encode_train(&batch.points, &batch.normals, &batch.query_indices)?;
-        let latents = enc.sample()?;
+        let latents = match encoder {
+            EncoderTraining::Trained => enc.sample()?,
+            EncoderTraining::Frozen => enc.sample()?.detach(),
+        };
         let hidden = self.hidden_states(&latents, &batch.faces)?;
         let logits = self.teacher_forced_logits(&hidden, &batch.faces)?;
         let coords = batch.cross_entropy(&logits, self.cfg.quant_levels)?;
@@ -424,5 +439,42 @@ mod tests {
         assert!(model.encode(&pts, &pts, &bad_idx).is_err());
         let bad_faces = faces_tensor(&[[cfg.quant_levels as u16; 9]]);
         assert!(model.hidden_states(&random_latents(&cfg, 1, 1), &bad_faces).is_err());
+    }
+
+    #[test]
+    fn a_frozen_encoder_gets_no_gradient_and_the_decoder_still_does() {
+        let cfg = FaceConfig::micro();
+        let dev = Device::Cpu;
+        let varmap = candle_nn::VarMap::new();
+        let model =
+            FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, &dev)).unwrap();
+        let pts: Vec<[f32; 3]> =
+            (0..cfg.num_points).map(|i| [(i as f32).sin(), (i as f32).cos(), 0.5]).collect();
+        let queries: Vec<u32> = (0..cfg.num_latents as u32).collect();
+        let faces = random_faces(&cfg, 4, 1);
+        let example = crate::model::TrainExample {
+            points: &pts,
+            normals: &pts,
+            query_indices: &queries,
+            faces: &faces,
+        };
+        let batch = crate::model::TrainBatch::new(&[example], &dev).unwrap();
+        for (mode, encoder_learns) in
+            [(EncoderTraining::Trained, true), (EncoderTraining::Frozen, false)]
+        {
+            let grads = model.loss(&batch, mode).unwrap().total.backward().unwrap();
+            let vars = varmap.data().lock().unwrap();
+            let has_grad = |prefix: &str| {
+                vars.iter()
+                    .filter(|(name, _)| name.starts_with(prefix))
+                    .map(|(_, v)| grads.get(v.as_tensor()).is_some())
+                    .collect::<Vec<_>>()
+            };
+            let encoder = has_grad("encoder.");
+            assert!(!encoder.is_empty());
+            assert!(encoder.iter().all(|&g| g == encoder_learns), "{mode:?}: {encoder:?}");
+            assert!(has_grad("decoder.").into_iter().all(|g| g), "{mode:?}");
+            assert!(has_grad("head.").into_iter().all(|g| g), "{mode:?}");
+        }
     }
 }

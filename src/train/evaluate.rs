@@ -13,7 +13,8 @@ use crate::metrics::{
     summarize, summarize_faces,
 };
 use crate::model::{
-    FaceModel, GenerateOptions, Generation, TrainBatch, TrainExample, step_generations,
+    EncoderTraining, FaceModel, GenerateOptions, Generation, TrainBatch, TrainExample,
+    step_generations,
 };
 use crate::tokenize::{FaceToken, Quantizer, detokenize};
 
@@ -234,7 +235,9 @@ fn teacher_forced_loss(
             .collect();
         let b = TrainBatch::new(&examples, model.device())?;
         let n: usize = chunk.iter().map(|&i| set.items[i].1.faces.len() + 1).sum();
-        loss_sum += f64::from(model.loss(&b)?.coords.to_scalar::<f32>()?) * n as f64;
+        // Nothing learns here: the latents need no gradient.
+        let loss = model.loss(&b, EncoderTraining::Frozen)?;
+        loss_sum += f64::from(loss.coords.to_scalar::<f32>()?) * n as f64;
         positions += n;
     }
     Ok(LossSum { sum: loss_sum, positions })

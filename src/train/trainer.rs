@@ -11,7 +11,9 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::MetricOptions;
-use crate::model::{FaceConfig, FaceModel, TrainBatch, checkpoint as model_checkpoint};
+use crate::model::{
+    EncoderTraining, FaceConfig, FaceModel, TrainBatch, checkpoint as model_checkpoint,
+};
 use crate::tokenize::Quantizer;
 
 use super::TrainError;
@@ -43,6 +45,9 @@ pub struct TrainConfig {
     pub eval_procedural: usize,
     /// Points per surface for the evaluation's Chamfer and Hausdorff distances.
     pub eval_metric_samples: usize,
+    /// Frozen: only the decoder and head learn (runs from before the option: trained).
+    #[serde(default)]
+    pub encoder: EncoderTraining,
 }
 
 pub struct Trainer {
@@ -67,6 +72,11 @@ impl Trainer {
         init: Option<&std::path::Path>,
         device: Device,
     ) -> Result<Self, TrainError> {
+        if cfg.encoder == EncoderTraining::Frozen && init.is_none() {
+            return Err(TrainError::Config(
+                "a frozen encoder needs trained weights to keep: start from --init".into(),
+            ));
+        }
         let dir = RunDir(dir);
         std::fs::create_dir_all(&dir.0)
             .map_err(|source| TrainError::Io { path: dir.0.clone(), source })?;
@@ -151,16 +161,26 @@ impl Trainer {
     pub fn data_summary(&self) -> String {
         match &self.train_data {
             Some(d) => format!(
-                "{} training meshes ({} unreadable, {} without faces, {} over the face limit skipped); {} evaluation meshes",
+                "{} training meshes ({} unreadable, {} without faces, {} over the face limit skipped); {} evaluation meshes{}",
                 d.meshes.len(),
                 d.skipped.unreadable.len(),
                 d.skipped.no_faces,
                 d.skipped.over_face_limit,
-                self.eval_set.items.len()
+                self.eval_set.items.len(),
+                self.frozen_note()
             ),
-            None => {
-                format!("procedural shapes only; {} evaluation meshes", self.eval_set.items.len())
-            }
+            None => format!(
+                "procedural shapes only; {} evaluation meshes{}",
+                self.eval_set.items.len(),
+                self.frozen_note()
+            ),
+        }
+    }
+
+    fn frozen_note(&self) -> &'static str {
+        match self.cfg.encoder {
+            EncoderTraining::Trained => "",
+            EncoderTraining::Frozen => "; the encoder is frozen",
         }
     }
 
@@ -240,7 +260,7 @@ impl run_loop::Steps for Trainer {
             for group in batch.length_groups(self.cfg.batch.max_padding) {
                 let examples: Vec<_> = group.iter().map(|s| super::evaluate::example(s)).collect();
                 let tensors = TrainBatch::new(&examples, &self.device)?;
-                let out = self.model.loss(&tensors)?;
+                let out = self.model.loss(&tensors, self.cfg.encoder)?;
                 // Each group's loss is a mean over its positions; weighted by its share,
                 // the sum is the mean over the whole step's positions.
                 let group_positions: usize = group.iter().map(|s| s.faces.len() + 1).sum();
