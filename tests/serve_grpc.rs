@@ -127,8 +127,12 @@ async fn files_are_accepted_and_bad_input_is_invalid_argument() {
 async fn overload_is_resource_exhausted() {
     let server = Server::start(&["--max-running", "1", "--max-queue", "1", "--stream-buffer", "2"]);
     let mut grpc = client(&server).await;
-    // Two streams nobody reads: one runs (stalled), one waits; the third is refused.
-    let _a = grpc.reconstruct(points_request(400)).await.unwrap();
+    // Two streams nobody reads on: one runs (stalled), one waits; the third is refused.
+    let mut a = grpc.reconstruct(points_request(400)).await.unwrap().into_inner();
+    // Its first faces show it was admitted: without them, a loaded machine may still have it
+    // in the queue when the next request arrives, and refuse that one instead.
+    let first = a.message().await.unwrap().and_then(|m| m.event);
+    assert!(matches!(first, Some(reconstruct_response::Event::Faces(_))), "{first:?}");
     let _b = grpc.reconstruct(points_request(400)).await.unwrap();
     let status = grpc.reconstruct(points_request(400)).await.map(|_| ()).unwrap_err();
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");

@@ -356,18 +356,21 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
 async fn overload_gets_429_with_retry_after() {
     let server = Server::start(&["--max-running", "1", "--max-queue", "1", "--stream-buffer", "2"]);
     let body = points_json(&shape(), json!({"max_faces": 400}));
-    // Two streams that are not read: one runs (stalled), one waits; the third is refused.
-    let mut held = Vec::new();
-    for _ in 0..2 {
-        let r = client()
+    // Two streams nobody reads on: one runs (stalled), one waits; the third is refused.
+    let stream = || {
+        client()
             .post(server.url("/reconstruct"))
             .header("accept", "application/x-ndjson")
             .json(&body)
             .send()
-            .await
-            .unwrap();
-        held.push(r);
-    }
+    };
+    let mut running = stream().await.unwrap();
+    assert_eq!(running.status(), 200);
+    // Its first face shows it was admitted: without it, a loaded machine may still have it in
+    // the queue when the next request arrives, and refuse that one instead.
+    assert!(running.chunk().await.unwrap().is_some());
+    let waiting = stream().await.unwrap();
+    assert_eq!(waiting.status(), 200);
     let r = client().post(server.url("/reconstruct")).json(&body).send().await.unwrap();
     assert_eq!(r.status(), 429);
     assert!(r.headers().contains_key("retry-after"));
