@@ -159,28 +159,22 @@ impl Trainer {
 
     /// Training meshes available (after skips) and what was skipped, for the start banner.
     pub fn data_summary(&self) -> String {
-        match &self.train_data {
+        let data = match &self.train_data {
             Some(d) => format!(
-                "{} training meshes ({} unreadable, {} without faces, {} over the face limit skipped); {} evaluation meshes{}",
+                "{} training meshes ({} unreadable, {} without faces, {} over the face limit skipped); {} evaluation meshes",
                 d.meshes.len(),
                 d.skipped.unreadable.len(),
                 d.skipped.no_faces,
                 d.skipped.over_face_limit,
-                self.eval_set.items.len(),
-                self.frozen_note()
+                self.eval_set.items.len()
             ),
-            None => format!(
-                "procedural shapes only; {} evaluation meshes{}",
-                self.eval_set.items.len(),
-                self.frozen_note()
-            ),
-        }
-    }
-
-    fn frozen_note(&self) -> &'static str {
+            None => {
+                format!("procedural shapes only; {} evaluation meshes", self.eval_set.items.len())
+            }
+        };
         match self.cfg.encoder {
-            EncoderTraining::Trained => "",
-            EncoderTraining::Frozen => "; the encoder is frozen",
+            EncoderTraining::Trained => data,
+            EncoderTraining::Frozen => format!("{data}; the encoder is frozen"),
         }
     }
 
