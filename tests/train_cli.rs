@@ -76,8 +76,13 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     export(&init_run, &init, "f32");
 
     // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
+    // (It also turns every sample by a quarter turn, which its train.json records.)
     let frozen = tmp.path().join("frozen");
-    run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &["--freeze-encoder"]);
+    let extra = ["--freeze-encoder", "--any-angle-share", "0"];
+    run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &extra);
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(frozen.join("train.json")).unwrap()).unwrap();
+    assert_eq!(config["batch"]["sample"]["augment"]["any_angle_share"], 0.0);
     let weights = |dir: &Path| {
         candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
             .unwrap()
@@ -138,20 +143,21 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("--resume"));
 
-    let output = train_bin()
-        .args(["ae", "--out", tmp.path().join("x").to_str().unwrap(), "--curriculum", "ten:5"])
-        .output()
-        .unwrap();
-    assert!(!output.status.success());
-    assert!(String::from_utf8_lossy(&output.stderr).contains("ten:5"));
-
-    // Freezing needs trained weights to keep.
-    let output = train_bin()
-        .args(["ae", "--out", tmp.path().join("y").to_str().unwrap(), "--freeze-encoder"])
-        .output()
-        .unwrap();
-    assert!(!output.status.success());
-    assert!(String::from_utf8_lossy(&output.stderr).contains("--init"));
+    // Each bad argument is refused with a message that names what is wrong.
+    let refusals: [(&[&str], &str); 3] = [
+        (&["--curriculum", "ten:5"], "ten:5"),
+        (&["--any-angle-share", "1.5"], "between 0 and 1"),
+        // Freezing needs trained weights to keep.
+        (&["--freeze-encoder"], "--init"),
+    ];
+    for (i, (args, says)) in refusals.into_iter().enumerate() {
+        let run = tmp.path().join(format!("refused-{i}"));
+        let output =
+            train_bin().args(["ae", "--out", run.to_str().unwrap()]).args(args).output().unwrap();
+        assert!(!output.status.success(), "{args:?}");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
+    }
 }
 
 #[test]

@@ -148,7 +148,11 @@ struct AeArgs {
     curriculum: String,
     #[arg(long, value_enum, default_value_t = Rotation::Upright)]
     rotation: Rotation,
-    #[arg(long, default_value_t = 0.5)]
+    /// With --rotation upright: the share of samples turned by any angle; the rest turn by a
+    /// quarter turn, which keeps axis-aligned faces (most of an artist's) axis-aligned.
+    #[arg(long, default_value_t = 0.25, value_parser = parse_share)]
+    any_angle_share: f32,
+    #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
     flip_probability: f32,
     #[arg(long, default_value_t = 0.25)]
     scale_jitter: f32,
@@ -242,8 +246,12 @@ struct DitArgs {
     /// mesh about the vertical axis (y, the renderer's up).
     #[arg(long, value_enum, default_value_t = Rotation::None)]
     rotation: Rotation,
+    /// With --rotation upright: the share of samples turned by any angle, the rest by a
+    /// quarter turn.
+    #[arg(long, default_value_t = 0.25, value_parser = parse_share)]
+    any_angle_share: f32,
     /// Mirroring probability per axis (a y flip shows the mesh upside down).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = parse_share)]
     flip_probability: f32,
     #[arg(long, default_value_t = 0.25)]
     scale_jitter: f32,
@@ -456,6 +464,7 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
                 rotation: args.rotation,
                 flip_probability: args.flip_probability,
                 scale_jitter: args.scale_jitter,
+                any_angle_share: args.any_angle_share,
             },
             view,
             seed: args.seed,
@@ -501,6 +510,7 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
                     rotation: args.rotation,
                     flip_probability: args.flip_probability,
                     scale_jitter: args.scale_jitter,
+                    any_angle_share: args.any_angle_share,
                 },
             },
             faces_per_batch: args.batch_faces,
@@ -523,6 +533,15 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         },
         model,
     })
+}
+
+/// A probability or share: a number in [0, 1].
+fn parse_share(text: &str) -> anyhow::Result<f32> {
+    let value: f32 = text.trim().parse().with_context(|| format!("{text:?} is not a number"))?;
+    if !(0.0..=1.0).contains(&value) {
+        bail!("{value} is not between 0 and 1");
+    }
+    Ok(value)
 }
 
 fn parse_curriculum(text: &str) -> anyhow::Result<Vec<CurriculumStage>> {
