@@ -75,6 +75,14 @@ fn sample_writes_points_with_normals() {
     assert!(cloud.is_point_cloud());
     assert_eq!(cloud.vertices.len(), 500);
     assert_eq!(cloud.normals.unwrap().len(), 500);
+
+    // A missing input says why once, not once per layer of the error chain.
+    let missing = dir.path().join("missing.ply");
+    let o = meshstream(&["sample", path(&missing), "-n", "500", "-o", path(&out)]);
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    let why = std::fs::File::open(&missing).unwrap_err().to_string();
+    assert_eq!(stderr.matches(why.as_str()).count(), 1, "{stderr}");
 }
 
 #[test]

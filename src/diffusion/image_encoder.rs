@@ -137,7 +137,7 @@ impl Dinov2Encoder {
         if !weights.is_file() {
             return Err(ModelError::Io {
                 path: weights.into(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+                error: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
             });
         }
         let tensors =

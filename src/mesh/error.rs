@@ -3,11 +3,11 @@ use std::path::PathBuf;
 /// Everything that can go wrong reading, writing or checking a mesh.
 #[derive(Debug, thiserror::Error)]
 pub enum MeshError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        // In the message, not a source: a chain printer would repeat it.
+        error: std::io::Error,
     },
     /// The bytes are not a valid file of the format (truncated, malformed, hostile).
     #[error("malformed {format} file: {message}")]

@@ -5,7 +5,7 @@ use super::{Format, MeshError};
 /// The mesh files directly inside `dir` (every format we read, by extension), sorted by name
 /// so that every listing of a folder is the same.
 pub fn mesh_files_in(dir: &Path) -> Result<Vec<PathBuf>, MeshError> {
-    let io = |source| MeshError::Io { path: dir.to_path_buf(), source };
+    let io = |error| MeshError::Io { path: dir.to_path_buf(), error };
     let mut files = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(io)? {
         let path = entry.map_err(io)?.path();

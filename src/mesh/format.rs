@@ -138,7 +138,7 @@ pub fn read_mesh(bytes: &[u8], format: Format, limits: &ReadLimits) -> Result<Me
 /// Reads a mesh file; the format comes from the extension, or from the content when the
 /// extension names none. The size is checked before anything is read.
 pub fn read_mesh_file(path: &Path, limits: &ReadLimits) -> Result<Mesh, MeshError> {
-    let io = |source| MeshError::Io { path: path.to_owned(), source };
+    let io = |error| MeshError::Io { path: path.to_owned(), error };
     limits.check_bytes(std::fs::metadata(path).map_err(io)?.len())?;
     let bytes = std::fs::read(path).map_err(io)?;
     let format = Format::from_path(path).or_else(|| Format::sniff(&bytes)).ok_or_else(|| {
@@ -171,7 +171,7 @@ pub fn write_mesh_file(mesh: &Mesh, path: &Path, format: Option<Format>) -> Resu
         MeshError::UnknownFormat(format!("{}: the extension names no format", path.display()))
     })?;
     let bytes = write_mesh(mesh, format)?;
-    std::fs::write(path, bytes).map_err(|source| MeshError::Io { path: path.to_owned(), source })
+    std::fs::write(path, bytes).map_err(|error| MeshError::Io { path: path.to_owned(), error })
 }
 
 #[cfg(test)]

@@ -231,7 +231,7 @@ fn read_external(
         return Err(unsupported(format!("buffer URI {uri:?}: only relative paths are read")));
     }
     let path = base.join(relative);
-    let io = |source| MeshError::Io { path: path.clone(), source };
+    let io = |error| MeshError::Io { path: path.clone(), error };
     let size = std::fs::metadata(&path).map_err(io)?.len();
     limits.check_bytes(so_far.saturating_add(size))?;
     std::fs::read(&path).map_err(io)

@@ -28,7 +28,7 @@ pub fn inference_model(cfg: &FaceConfig, varmap: &VarMap, device: &Device) -> Re
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
-    move |source| ModelError::Io { path: path.to_path_buf(), source }
+    move |error| ModelError::Io { path: path.to_path_buf(), error }
 }
 
 /// Writes `config.json` and `model.safetensors` into `dir` (created if needed).
@@ -88,7 +88,7 @@ fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String,
     if !path.is_file() {
         return Err(ModelError::Io {
             path,
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+            error: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
         });
     }
     let tensors = candle_core::safetensors::load(&path, device)

@@ -23,11 +23,11 @@ pub enum ModelError {
     #[error("device {0:?} needs CUDA, but meshstream was built without the `cuda` feature")]
     CudaNotCompiled(String),
 
-    #[error("checkpoint {path}: {source}")]
+    #[error("checkpoint {path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        // In the message, not a source: a chain printer would repeat it.
+        error: std::io::Error,
     },
 
     #[error("checkpoint {path}: {message}")]

@@ -41,8 +41,9 @@ use proto::mesh_generator_server::MeshGeneratorServer;
 
 #[derive(Debug, Error)]
 pub enum ServerError {
-    #[error("cannot listen on {addr}: {source}")]
-    Bind { addr: SocketAddr, source: std::io::Error },
+    /// The I/O error is in the message, not a source: a chain printer would repeat it.
+    #[error("cannot listen on {addr}: {error}")]
+    Bind { addr: SocketAddr, error: std::io::Error },
     #[error("the {what} server failed: {message}")]
     Serve { what: &'static str, message: String },
 }
@@ -153,7 +154,7 @@ pub struct Listeners {
 impl Listeners {
     pub async fn bind(cfg: &ServeConfig) -> Result<Self, ServerError> {
         let bind = |addr: SocketAddr| async move {
-            TcpListener::bind(addr).await.map_err(|source| ServerError::Bind { addr, source })
+            TcpListener::bind(addr).await.map_err(|error| ServerError::Bind { addr, error })
         };
         Ok(Self { http: bind(cfg.http_addr).await?, grpc: bind(cfg.grpc_addr).await? })
     }

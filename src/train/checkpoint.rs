@@ -69,7 +69,7 @@ impl TrainState {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |source| TrainError::Io { path: path.to_path_buf(), source }
+    move |error| TrainError::Io { path: path.to_path_buf(), error }
 }
 
 /// Writes a checkpoint into `dir`: to a sibling temporary folder first, then renamed, so an

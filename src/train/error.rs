@@ -14,11 +14,11 @@ pub enum TrainError {
     Model(#[from] ModelError),
     #[error(transparent)]
     Tensor(#[from] candle_core::Error),
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        // In the message, not a source: a chain printer would repeat it.
+        error: std::io::Error,
     },
     #[error("{path}: bad manifest: {message}")]
     Manifest { path: PathBuf, message: String },

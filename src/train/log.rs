@@ -63,7 +63,7 @@ impl LogWriter {
             .create(true)
             .append(true)
             .open(path)
-            .map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
+            .map_err(|error| TrainError::Io { path: path.to_path_buf(), error })?;
         Ok(Self(file))
     }
 
@@ -71,14 +71,14 @@ impl LogWriter {
         let line = serde_json::to_string(record).map_err(|e| TrainError::Json(e.to_string()))?;
         writeln!(self.0, "{line}")
             .and_then(|()| self.0.flush())
-            .map_err(|source| TrainError::Io { path: "log".into(), source })
+            .map_err(|error| TrainError::Io { path: "log".into(), error })
     }
 }
 
 /// Every record of a log; lines that do not parse (a line cut by a crash) are skipped.
 pub fn read_log(path: &Path) -> Result<Vec<LogRecord>, TrainError> {
     let file = std::fs::File::open(path)
-        .map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
+        .map_err(|error| TrainError::Io { path: path.to_path_buf(), error })?;
     Ok(std::io::BufReader::new(file)
         .lines()
         .map_while(Result::ok)

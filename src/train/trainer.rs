@@ -79,11 +79,11 @@ impl Trainer {
         }
         let dir = RunDir(dir);
         std::fs::create_dir_all(&dir.0)
-            .map_err(|source| TrainError::Io { path: dir.0.clone(), source })?;
+            .map_err(|error| TrainError::Io { path: dir.0.clone(), error })?;
         let json =
             serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
         std::fs::write(dir.config(), json)
-            .map_err(|source| TrainError::Io { path: dir.config(), source })?;
+            .map_err(|error| TrainError::Io { path: dir.config(), error })?;
         let trainer = Self::build(cfg, dir, device)?;
         if let Some(init) = init {
             let init_cfg = model_checkpoint::load_config(init)?;
@@ -102,7 +102,7 @@ impl Trainer {
     pub fn resume(dir: PathBuf, device: Device, steps: Option<u64>) -> Result<Self, TrainError> {
         let dir = RunDir(dir);
         let text = std::fs::read_to_string(dir.config())
-            .map_err(|source| TrainError::Io { path: dir.config(), source })?;
+            .map_err(|error| TrainError::Io { path: dir.config(), error })?;
         let mut cfg: TrainConfig =
             serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
         if let Some(steps) = steps {

@@ -49,7 +49,7 @@ impl AutoencoderId {
     pub fn of(dir: &Path) -> Result<Self, TrainError> {
         let config = crate::model::checkpoint::load_config(dir)?;
         let path = dir.join(WEIGHTS_FILE);
-        let bytes = std::fs::read(&path).map_err(|source| TrainError::Io { path, source })?;
+        let bytes = std::fs::read(&path).map_err(|error| TrainError::Io { path, error })?;
         Ok(Self {
             config,
             weights_bytes: bytes.len() as u64,
@@ -293,7 +293,7 @@ impl LatentCache {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |source| TrainError::Io { path: path.to_path_buf(), source }
+    move |error| TrainError::Io { path: path.to_path_buf(), error }
 }
 
 /// The training meshes (normalized): the folder's split, then the procedural shapes.
