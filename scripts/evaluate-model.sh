@@ -2,7 +2,8 @@
 # Reconstructs every mesh of the lowpoly dev split and of famous-dev from points sampled on
 # its surface, then scores the results against the ground truth with `meshstream eval`
 # (DESIGN.md's CD/HD). Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...],
-# e.g. --face-beam 1.
+# e.g. --face-beam 1. With TURN=DEGREES in the environment every mesh is first turned about the
+# vertical axis by that angle (`meshstream convert --turn`), so its walls are off the axes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}
@@ -13,11 +14,24 @@ bin="${CARGO_TARGET_DIR:-target}/release/meshstream"
 cargo build --release --quiet --bin meshstream
 
 mkdir -p "$out/dev-gt" "$out/dev-pred" "$out/famous-pred"
-# The dev split of the low-poly set, linked into one folder so eval pairs them by name.
+famous_gt="$data/famous-dev"
+# Each ground-truth mesh, linked (or turned) into the output folder so eval pairs them by name.
+place() {
+  if [ -n "${TURN:-}" ]; then
+    "$bin" convert "$1" "$2" --turn "$TURN" 2>/dev/null
+  else
+    ln -sf "$(realpath "$1")" "$2"
+  fi
+}
 awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | while read -r f; do
-  ln -sf "$(realpath "$data/lowpoly/$f")" "$out/dev-gt/$f"
+  place "$data/lowpoly/$f" "$out/dev-gt/$f"
 done
-for gt_dir in "$out/dev-gt" "$data/famous-dev"; do
+if [ -n "${TURN:-}" ]; then
+  famous_gt="$out/famous-gt"
+  mkdir -p "$famous_gt"
+  for f in "$data"/famous-dev/*.ply; do place "$f" "$famous_gt/$(basename "$f")"; done
+fi
+for gt_dir in "$out/dev-gt" "$famous_gt"; do
   pred_dir=$([ "$gt_dir" = "$out/dev-gt" ] && echo "$out/dev-pred" || echo "$out/famous-pred")
   for f in "$gt_dir"/*.ply; do
     name=$(basename "$f" .ply)
@@ -28,4 +42,4 @@ done
 echo "== lowpoly dev split"
 "$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | tail -n 6
 echo "== famous-dev"
-"$bin" eval --pred "$out/famous-pred" --gt "$data/famous-dev"
+"$bin" eval --pred "$out/famous-pred" --gt "$famous_gt"

@@ -61,6 +61,14 @@ fn convert_round_trips_between_formats_and_quantize_snaps_in_place() {
     let bad = meshstream(&["convert", path(&src), path(&snapped), "--quantize", "7"]);
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("128"));
+
+    // A quarter turn about y takes the sphere at x = 100 to z = -100.
+    let turned = dir.path().join("turned.ply");
+    let o = meshstream(&["convert", path(&src), path(&turned), "--turn", "90"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (lo, hi) = read_mesh_file(&turned, &ReadLimits::default()).unwrap().bounds().unwrap();
+    assert!((lo[2] + 105.0).abs() < 0.1 && (hi[2] + 95.0).abs() < 0.1, "{lo:?} {hi:?}");
+    assert!(lo[0].abs() < 5.1 && hi[0].abs() < 5.1, "{lo:?} {hi:?}");
 }
 
 #[test]

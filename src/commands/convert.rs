@@ -2,6 +2,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args;
+use meshstream::mesh::transform::rotation;
 use meshstream::mesh::{Format, Normalization, write_mesh_file};
 use meshstream::tokenize::{Quantizer, detokenize, tokenize_mesh};
 
@@ -16,6 +17,10 @@ pub struct ConvertArgs {
     /// Output format: obj, ply, stl or glb.
     #[arg(long)]
     format: Option<Format>,
+    /// Turn the mesh about the vertical axis (y) by this many degrees first: to see how a
+    /// model does on a mesh whose walls are not on the axes.
+    #[arg(long, value_name = "DEGREES", allow_hyphen_values = true)]
+    turn: Option<f32>,
     /// Snap to the FACE quantization grid with Q levels per axis (128 to 1024): welds
     /// vertices, drops collapsed and repeated faces, and keeps the input's coordinates.
     #[arg(long, value_name = "Q")]
@@ -28,6 +33,10 @@ pub struct ConvertArgs {
 
 pub fn run(args: &ConvertArgs) -> anyhow::Result<()> {
     let mut mesh = load_mesh(&args.input)?;
+    if let Some(degrees) = args.turn {
+        anyhow::ensure!(degrees.is_finite(), "--turn {degrees} is not a number of degrees");
+        mesh = mesh.transformed(&rotation([0.0, 1.0, 0.0], degrees.to_radians()), [0.0; 3]);
+    }
     if let Some(levels) = args.quantize {
         let q = Quantizer::new(levels)?;
         let (tokenized, normalization) = tokenize_mesh(&mesh, q).context("quantizing")?;
