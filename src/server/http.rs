@@ -6,7 +6,7 @@ use std::convert::Infallible;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use axum::body::{Body, Bytes, to_bytes};
+use axum::body::{Body, Bytes};
 use axum::extract::{Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, Uri, header};
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
@@ -240,21 +240,34 @@ async fn run(
     }
 }
 
+/// The whole body, or 413 `too_large` when it is over `limit` bytes.
 async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
-    to_bytes(body, limit).await.map_err(|e| {
-        let mut source: Option<&(dyn std::error::Error + 'static)> = Some(&e);
-        while let Some(s) = source {
-            if s.is::<http_body_util::LengthLimitError>() {
-                return ApiError::new(
-                    StatusCode::PAYLOAD_TOO_LARGE,
-                    "too_large",
-                    format!("the body is over this server's limit of {limit} bytes"),
-                );
-            }
-            source = s.source();
+    let mut chunks = body.into_data_stream();
+    let mut bytes = Vec::new();
+    let mut over = 0usize;
+    while let Some(chunk) = chunks.next().await {
+        let chunk =
+            chunk.map_err(|e| ApiError::malformed(format!("reading the body failed: {e}")))?;
+        if over == 0 && bytes.len() + chunk.len() <= limit {
+            bytes.extend_from_slice(&chunk);
+            continue;
         }
-        ApiError::malformed(format!("reading the body failed: {e}"))
-    })
+        // Past the limit, read on and drop up to one more limit's worth before answering:
+        // closing a connection with unread bytes in it resets it, and the client would lose
+        // the 413 (a lingering close, as nginx does).
+        over += chunk.len();
+        if over > limit {
+            break;
+        }
+    }
+    if over > 0 {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_large",
+            format!("the body is over this server's limit of {limit} bytes"),
+        ));
+    }
+    Ok(Bytes::from(bytes))
 }
 
 enum Streaming {
