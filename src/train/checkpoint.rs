@@ -68,10 +68,6 @@ impl TrainState {
     }
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |error| TrainError::Io { path: path.to_path_buf(), error }
-}
-
 /// Writes a checkpoint into `dir`: to a sibling temporary folder first, then renamed, so an
 /// interrupted save never leaves a half-written checkpoint behind.
 pub fn save(
@@ -83,17 +79,17 @@ pub fn save(
 ) -> Result<(), TrainError> {
     let tmp = dir.with_extension("tmp");
     if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
+        std::fs::remove_dir_all(&tmp).map_err(TrainError::io(&tmp))?;
     }
     model_checkpoint::save_checkpoint(&tmp, cfg, varmap)?;
     candle_core::safetensors::save(&optimizer.state()?, tmp.join(OPTIMIZER_FILE))?;
     let state_path = tmp.join(STATE_FILE);
     let json = serde_json::to_string_pretty(state).map_err(|e| TrainError::Json(e.to_string()))?;
-    std::fs::write(&state_path, json).map_err(io(&state_path))?;
+    std::fs::write(&state_path, json).map_err(TrainError::io(&state_path))?;
     if dir.exists() {
-        std::fs::remove_dir_all(dir).map_err(io(dir))?;
+        std::fs::remove_dir_all(dir).map_err(TrainError::io(dir))?;
     }
-    std::fs::rename(&tmp, dir).map_err(io(dir))?;
+    std::fs::rename(&tmp, dir).map_err(TrainError::io(dir))?;
     Ok(())
 }
 
@@ -109,7 +105,7 @@ pub fn restore(
     let state = candle_core::safetensors::load(&opt_path, device)?;
     optimizer.load_state(&state)?;
     let state_path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&state_path).map_err(io(&state_path))?;
+    let text = std::fs::read_to_string(&state_path).map_err(TrainError::io(&state_path))?;
     serde_json::from_str(&text)
         .map_err(|e| TrainError::Json(format!("{}: {e}", state_path.display())))
 }

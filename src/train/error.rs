@@ -1,4 +1,4 @@
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::mesh::MeshError;
 use crate::model::ModelError;
@@ -30,4 +30,11 @@ pub enum TrainError {
     DataStopped,
     #[error("{0}")]
     Config(String),
+}
+
+impl TrainError {
+    /// For `map_err`: an I/O error on `path`.
+    pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+        move |error| TrainError::Io { path: path.to_path_buf(), error }
+    }
 }

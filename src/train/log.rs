@@ -63,7 +63,7 @@ impl LogWriter {
             .create(true)
             .append(true)
             .open(path)
-            .map_err(|error| TrainError::Io { path: path.to_path_buf(), error })?;
+            .map_err(TrainError::io(path))?;
         Ok(Self(file))
     }
 
@@ -77,8 +77,7 @@ impl LogWriter {
 
 /// Every record of a log; lines that do not parse (a line cut by a crash) are skipped.
 pub fn read_log(path: &Path) -> Result<Vec<LogRecord>, TrainError> {
-    let file = std::fs::File::open(path)
-        .map_err(|error| TrainError::Io { path: path.to_path_buf(), error })?;
+    let file = std::fs::File::open(path).map_err(TrainError::io(path))?;
     Ok(std::io::BufReader::new(file)
         .lines()
         .map_while(Result::ok)

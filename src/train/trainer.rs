@@ -78,12 +78,10 @@ impl Trainer {
             ));
         }
         let dir = RunDir(dir);
-        std::fs::create_dir_all(&dir.0)
-            .map_err(|error| TrainError::Io { path: dir.0.clone(), error })?;
+        std::fs::create_dir_all(&dir.0).map_err(TrainError::io(&dir.0))?;
         let json =
             serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
-        std::fs::write(dir.config(), json)
-            .map_err(|error| TrainError::Io { path: dir.config(), error })?;
+        std::fs::write(dir.config(), json).map_err(TrainError::io(&dir.config()))?;
         let trainer = Self::build(cfg, dir, device)?;
         if let Some(init) = init {
             let init_cfg = model_checkpoint::load_config(init)?;
@@ -101,8 +99,7 @@ impl Trainer {
     /// Continues the run in `dir` exactly where its last checkpoint left it.
     pub fn resume(dir: PathBuf, device: Device, steps: Option<u64>) -> Result<Self, TrainError> {
         let dir = RunDir(dir);
-        let text = std::fs::read_to_string(dir.config())
-            .map_err(|error| TrainError::Io { path: dir.config(), error })?;
+        let text = std::fs::read_to_string(dir.config()).map_err(TrainError::io(&dir.config()))?;
         let mut cfg: TrainConfig =
             serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
         if let Some(steps) = steps {

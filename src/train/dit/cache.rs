@@ -49,7 +49,7 @@ impl AutoencoderId {
     pub fn of(dir: &Path) -> Result<Self, TrainError> {
         let config = crate::model::checkpoint::load_config(dir)?;
         let path = dir.join(WEIGHTS_FILE);
-        let bytes = std::fs::read(&path).map_err(|error| TrainError::Io { path, error })?;
+        let bytes = std::fs::read(&path).map_err(TrainError::io(&path))?;
         Ok(Self {
             config,
             weights_bytes: bytes.len() as u64,
@@ -237,10 +237,10 @@ impl LatentCache {
     /// Writes the cache into `dir` (created if needed); the description last, so a folder
     /// with a description always has its tensors.
     pub fn save(&self, dir: &Path) -> Result<(), TrainError> {
-        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        std::fs::create_dir_all(dir).map_err(TrainError::io(dir))?;
         let info_path = dir.join(INFO_FILE);
         if info_path.exists() {
-            std::fs::remove_file(&info_path).map_err(io(&info_path))?;
+            std::fs::remove_file(&info_path).map_err(TrainError::io(&info_path))?;
         }
         let spec = &self.info.spec;
         let s = spec.view.size as usize;
@@ -254,7 +254,7 @@ impl LatentCache {
         candle_core::safetensors::save(&tensors, dir.join(TENSORS_FILE))?;
         let json = serde_json::to_string_pretty(&self.info)
             .map_err(|e| TrainError::Json(e.to_string()))?;
-        std::fs::write(&info_path, json).map_err(io(&info_path))
+        std::fs::write(&info_path, json).map_err(TrainError::io(&info_path))
     }
 
     /// The cache in `dir`, if there is one: its description and tensor shapes checked.
@@ -263,7 +263,7 @@ impl LatentCache {
         if !info_path.is_file() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&info_path).map_err(io(&info_path))?;
+        let text = std::fs::read_to_string(&info_path).map_err(TrainError::io(&info_path))?;
         let info: CacheInfo = serde_json::from_str(&text)
             .map_err(|e| TrainError::Json(format!("{}: {e}", info_path.display())))?;
         let path = dir.join(TENSORS_FILE);
@@ -290,10 +290,6 @@ impl LatentCache {
             info,
         }))
     }
-}
-
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |error| TrainError::Io { path: path.to_path_buf(), error }
 }
 
 /// The training meshes (normalized): the folder's split, then the procedural shapes.

@@ -45,10 +45,6 @@ pub struct DitTrainer {
     log: LogWriter,
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |error| TrainError::Io { path: path.to_path_buf(), error }
-}
-
 impl DitTrainer {
     /// A new run in `dir`: builds (or reuses, when its description matches) the latent cache,
     /// writes the cache's latent statistics into the model configuration, saves `train.json`,
@@ -61,7 +57,7 @@ impl DitTrainer {
         progress: bool,
     ) -> Result<Self, TrainError> {
         let dir = RunDir(dir);
-        std::fs::create_dir_all(&dir.0).map_err(io(&dir.0))?;
+        std::fs::create_dir_all(&dir.0).map_err(TrainError::io(&dir.0))?;
         let autoencoder = load_autoencoder(&cfg, &device)?;
         let cache = match LatentCache::load(&dir.latent_cache())? {
             Some(cache) if cache.info.spec == cfg.cache => cache,
@@ -75,7 +71,7 @@ impl DitTrainer {
         cfg.model.validate()?;
         let json =
             serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
-        std::fs::write(dir.config(), json).map_err(io(&dir.config()))?;
+        std::fs::write(dir.config(), json).map_err(TrainError::io(&dir.config()))?;
         let trainer = Self::build(cfg, dir, device, autoencoder, cache)?;
         if let Some(init) = init {
             let mut init_cfg = dit_checkpoint::load_config(init)?;
@@ -96,7 +92,7 @@ impl DitTrainer {
     /// and the latent cache must be the ones the run started with.
     pub fn resume(dir: PathBuf, device: Device, steps: Option<u64>) -> Result<Self, TrainError> {
         let dir = RunDir(dir);
-        let text = std::fs::read_to_string(dir.config()).map_err(io(&dir.config()))?;
+        let text = std::fs::read_to_string(dir.config()).map_err(TrainError::io(&dir.config()))?;
         let mut cfg: DitTrainConfig =
             serde_json::from_str(&text).map_err(|e| TrainError::Json(e.to_string()))?;
         if let Some(steps) = steps {
