@@ -22,7 +22,8 @@ pub struct ConvertArgs {
     #[arg(long, value_name = "DEGREES", allow_hyphen_values = true)]
     turn: Option<f32>,
     /// Snap to the FACE quantization grid with Q levels per axis (128 to 1024): welds
-    /// vertices, drops collapsed and repeated faces, and keeps the input's coordinates.
+    /// vertices, drops collapsed and repeated faces, splits each flat convex polygon as a fan
+    /// from its smallest corner (as training data is), and keeps the input's coordinates.
     #[arg(long, value_name = "Q")]
     quantize: Option<u16>,
     /// Move the result into the models' frame (bounding box centred at the origin, longest

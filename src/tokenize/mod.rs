@@ -1,5 +1,5 @@
-//! FACE tokenization: quantization, the canonical ZYX order, one token per face, and the
-//! one-token-per-coordinate baseline the paper compares against.
+//! FACE tokenization: quantization, the canonical ZYX order, one split per flat polygon, one
+//! token per face, and the one-token-per-coordinate baseline the paper compares against.
 //!
 //! A mesh in the normalized frame becomes a sorted sequence of [`FaceToken`]s (9 quantized
 //! coordinates each); [`detokenize`] turns a sequence back into a welded mesh.
@@ -7,6 +7,7 @@
 mod error;
 mod order;
 mod per_coordinate;
+mod polygons;
 mod quantize;
 mod tokens;
 
@@ -15,6 +16,7 @@ pub use order::{FaceToken, ZyxVertex, canonical_face, face_vertices, is_canonica
 pub use per_coordinate::{
     SequenceStats, faces_from_per_coordinate, per_coordinate_tokens, sequence_stats,
 };
+pub use polygons::{canonical_polygons, canonical_triangulation};
 pub use quantize::{DEFAULT_LEVELS, MAX_LEVELS, MIN_LEVELS, Quantizer};
 pub use tokens::{
     Tokenized, detokenize, face_positions, is_canonical_sequence, tokenize, tokenize_mesh,

@@ -20,7 +20,7 @@ pub fn face_vertices(f: &FaceToken) -> [ZyxVertex; 3] {
     [[f[0], f[1], f[2]], [f[3], f[4], f[5]], [f[6], f[7], f[8]]]
 }
 
-fn face_from_vertices([a, b, c]: [ZyxVertex; 3]) -> FaceToken {
+pub(crate) fn face_from_vertices([a, b, c]: [ZyxVertex; 3]) -> FaceToken {
     [a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2]]
 }
 

@@ -5,7 +5,9 @@ use std::collections::{HashMap, HashSet};
 use crate::mesh::{Mesh, Normalization};
 
 use super::order::{ZyxVertex, face_vertices, swap_xz, vertex_set_key};
-use super::{FaceToken, Quantizer, TokenizeError, canonical_face, is_canonical_face};
+use super::{
+    FaceToken, Quantizer, TokenizeError, canonical_face, canonical_polygons, is_canonical_face,
+};
 
 /// A mesh as its canonical face sequence, with what the tokenizer removed on the way.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -26,7 +28,8 @@ pub struct Tokenized {
 /// Tokenizes a mesh ALREADY in the normalized frame: quantizes, welds vertices sharing a cell,
 /// drops collapsed faces and faces that repeat another (same three vertices in any order or
 /// orientation: the smallest token is kept, so the result does not depend on the input's face
-/// order), then sorts the faces in ZYX order.
+/// order), re-splits every flat convex polygon as a fan from its smallest corner
+/// ([`canonical_polygons`]), then sorts the faces in ZYX order.
 ///
 /// Coordinates outside [-1, 1] are clamped to the border cells; a NaN lands in cell 0
 /// (`Mesh::validate` rejects those first).
@@ -36,27 +39,38 @@ pub fn tokenize(mesh: &Mesh, q: Quantizer) -> Tokenized {
     let welded_vertices = cells.len() - occupied.len();
 
     let mut collapsed_faces = 0;
-    let mut keyed = Vec::with_capacity(mesh.faces.len());
+    let mut tokens = Vec::with_capacity(mesh.faces.len());
     for face in &mesh.faces {
         let corners = face.map(|i| cells.get(i as usize).copied());
         match corners {
             [Some(a), Some(b), Some(c)] => match canonical_face([a, b, c]) {
-                Some(token) => keyed.push((vertex_set_key(&token), token)),
+                Some(token) => tokens.push(token),
                 None => collapsed_faces += 1,
             },
             _ => collapsed_faces += 1,
         }
     }
+    // Repeats go before polygons are re-split (an edge of a repeated face has too many faces
+    // for a region to form across it) and again after: two sides of a sheet that were split
+    // differently repeat each other once both are fans.
+    let (tokens, repeats) = without_repeats(tokens);
+    let (mut faces, new_repeats) = without_repeats(canonical_polygons(&tokens));
+    let duplicate_faces = repeats + new_repeats;
+    faces.sort_unstable();
+    Tokenized { faces, welded_vertices, collapsed_faces, duplicate_faces }
+}
+
+/// The faces with each group of repeats (same three vertices) reduced to its smallest token,
+/// so the result does not depend on the input's face order; and how many were dropped.
+fn without_repeats(faces: Vec<FaceToken>) -> (Vec<FaceToken>, usize) {
+    let mut keyed: Vec<_> = faces.into_iter().map(|t| (vertex_set_key(&t), t)).collect();
     // Sorting by (vertex set, token) puts each group of repeats together with its smallest
     // token first, which `dedup_by_key` keeps.
     keyed.sort_unstable();
     let before = keyed.len();
     keyed.dedup_by_key(|(key, _)| *key);
-    let duplicate_faces = before - keyed.len();
-
-    let mut faces: Vec<FaceToken> = keyed.into_iter().map(|(_, token)| token).collect();
-    faces.sort_unstable();
-    Tokenized { faces, welded_vertices, collapsed_faces, duplicate_faces }
+    let dropped = before - keyed.len();
+    (keyed.into_iter().map(|(_, token)| token).collect(), dropped)
 }
 
 /// Tokenizes a mesh in any coordinates: validates it, normalizes it (`Mesh::normalized`), then
@@ -108,7 +122,9 @@ fn corner_position(zyx: ZyxVertex, q: Quantizer) -> [f32; 3] {
 }
 
 /// Every face canonical, faces strictly increasing in ZYX order, and no two faces on the same
-/// three vertices (not even with opposite windings): exactly the sequences [`tokenize`] makes.
+/// three vertices (not even with opposite windings): the order [`tokenize`] makes, which
+/// decoding keeps to. (How flat polygons are split is not checked: a decoder may split them
+/// either way.)
 pub fn is_canonical_sequence(faces: &[FaceToken]) -> bool {
     let increasing = faces.windows(2).all(|w| w[0] < w[1]);
     let mut seen = HashSet::with_capacity(faces.len());
@@ -292,11 +308,24 @@ mod tests {
 
     proptest! {
         #[test]
-        fn detokenize_then_tokenize_is_identity((q, seq) in canonical_sequence()) {
+        fn detokenize_then_tokenize_changes_only_the_split_of_flat_polygons(
+            (q, seq) in canonical_sequence()
+        ) {
             prop_assert!(is_canonical_sequence(&seq));
             let t = tokenize(&detokenize(&seq, q), q);
-            prop_assert_eq!(t.faces, seq);
-            prop_assert_eq!((t.welded_vertices, t.collapsed_faces, t.duplicate_faces), (0, 0, 0));
+            // Two sides of a sheet split differently become repeats once both are fans.
+            let (mut expected, repeats) = without_repeats(canonical_polygons(&seq));
+            expected.sort_unstable();
+            prop_assert_eq!(t.faces, expected);
+            prop_assert_eq!((t.welded_vertices, t.collapsed_faces, t.duplicate_faces), (0, 0, repeats));
+        }
+
+        #[test]
+        fn a_tokenized_mesh_tokenizes_to_itself(m in coarse_mesh(), q in quantizer()) {
+            let once = tokenize(&m, q);
+            let twice = tokenize(&detokenize(&once.faces, q), q);
+            prop_assert_eq!(twice.faces, once.faces);
+            prop_assert_eq!((twice.collapsed_faces, twice.duplicate_faces), (0, 0));
         }
 
         #[test]

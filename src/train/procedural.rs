@@ -10,6 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::mesh::Mesh;
 use crate::mesh::primitives::{cuboid, extrusion, frustum, torus, uv_sphere};
 use crate::mesh::transform::rotation;
+use crate::tokenize::canonical_triangulation;
 
 /// What kind of shape a sample is, for logs and for stratified evaluation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
@@ -110,7 +111,11 @@ impl Iterator for ProceduralShapes {
 pub fn shape(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
     // Built with z up (profiles are drawn in xy and extruded along z), then turned so that
     // z goes to y: -90 degrees about x.
-    z_up(kind, rng).transformed(&rotation([1.0, 0.0, 0.0], -std::f32::consts::FRAC_PI_2), [0.0; 3])
+    // Its flat polygons are split the one way tokenization splits them, so that a shape used as
+    // ground truth has the faces a model can learn to rebuild.
+    let turned = z_up(kind, rng)
+        .transformed(&rotation([1.0, 0.0, 0.0], -std::f32::consts::FRAC_PI_2), [0.0; 3]);
+    canonical_triangulation(&turned)
 }
 
 fn z_up(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {

@@ -1,0 +1,386 @@
+//! One triangulation per planar polygon: a flat convex region of a mesh (a box's side, a
+//! prism's cap) is re-split as a fan from its smallest corner in ZYX order.
+//!
+//! How a flat quad is split into two triangles leaves no trace in the surface, so nothing in
+//! the input points can tell the decoder which diagonal the ground truth used: with arbitrary
+//! splits in the training data, every flat quad is a coin toss the model can never learn, and a
+//! rebuilt box matches its ground truth face for face only by luck. A fan from the smallest
+//! corner is one fixed choice, and the one that fits the sequence order: all its triangles
+//! start at that corner. DESIGN.md's order makes one mesh one sequence; this makes one surface
+//! one sequence.
+//!
+//! The test is exact: corners are integer grid cells, so "flat" is a zero determinant, not a
+//! tolerance. Regions that are not a single strictly convex polygon without inner vertices
+//! (non-convex caps, fans around a centre vertex, edges shared by more than two faces) are left
+//! as they are.
+
+use std::collections::{HashMap, HashSet};
+
+use crate::mesh::{Mesh, Normalization};
+
+use super::order::{ZyxVertex, face_from_vertices, face_vertices};
+use super::{FaceToken, MAX_LEVELS, Quantizer, canonical_face};
+
+type Vector = [i64; 3];
+
+/// The faces with every flat convex region re-split as a fan from its smallest corner. Faces
+/// outside such regions come back as they are; a region's fan has as many faces as the region
+/// had (a convex polygon without inner vertices of n corners has n - 2 triangles either way) and
+/// the same winding. The result does not depend on how the input split its regions, and is
+/// its own fixed point.
+pub fn canonical_polygons(faces: &[FaceToken]) -> Vec<FaceToken> {
+    let triangles: Vec<[ZyxVertex; 3]> = faces.iter().map(face_vertices).collect();
+    let mut regions = Regions::new(triangles.len());
+    for (i, j) in flat_neighbours(&triangles) {
+        regions.join(i, j);
+    }
+    let mut members: HashMap<usize, Vec<usize>> = HashMap::new();
+    for i in 0..triangles.len() {
+        members.entry(regions.root(i)).or_default().push(i);
+    }
+
+    let mut out = Vec::with_capacity(faces.len());
+    for i in 0..triangles.len() {
+        let region = &members[&regions.root(i)];
+        if region.len() == 1 {
+            out.push(faces[i]);
+        } else if region[0] == i {
+            // A region is handled once, at its first face.
+            let corners: Vec<[ZyxVertex; 3]> = region.iter().map(|&f| triangles[f]).collect();
+            match convex_fan(&corners) {
+                Some(fan) => out.extend(fan.into_iter().map(face_from_vertices)),
+                None => out.extend(region.iter().map(|&f| faces[f])),
+            }
+        }
+    }
+    out
+}
+
+/// The mesh with [`canonical_polygons`] applied, its vertices untouched: for meshes that are
+/// ground truth themselves (procedural shapes), so that their triangulation is the one the
+/// model learns. Flatness and order are judged on the finest grid (1,024 levels in the mesh's
+/// normalized frame). A mesh with vertices that share a cell there, or that cannot be
+/// normalized, is returned as it is.
+pub fn canonical_triangulation(mesh: &Mesh) -> Mesh {
+    let Ok(frame) = Normalization::fit(&mesh.vertices) else { return mesh.clone() };
+    let Ok(q) = Quantizer::new(MAX_LEVELS) else { return mesh.clone() };
+    let cells: Vec<[u16; 3]> =
+        mesh.vertices.iter().map(|&v| frame.apply(v).map(|c| q.quantize(c))).collect();
+    // ZYX cell -> vertex index; welded vertices would make the mapping back ambiguous.
+    let index: HashMap<ZyxVertex, u32> =
+        cells.iter().enumerate().map(|(i, &[x, y, z])| ([z, y, x], i as u32)).collect();
+    if index.len() != cells.len() {
+        return mesh.clone();
+    }
+    let corner = |i: u32| cells.get(i as usize).copied();
+    let tokens: Option<Vec<FaceToken>> = mesh
+        .faces
+        .iter()
+        .map(|&[a, b, c]| canonical_face([corner(a)?, corner(b)?, corner(c)?]))
+        .collect();
+    let Some(tokens) = tokens else { return mesh.clone() };
+    let faces =
+        canonical_polygons(&tokens).iter().map(|t| face_vertices(t).map(|v| index[&v])).collect();
+    Mesh::new(mesh.vertices.clone(), faces)
+}
+
+/// Pairs of faces across an edge that exactly two faces share, in opposite directions (a
+/// consistently wound surface), whose normals point the same way: the two lie flat together.
+fn flat_neighbours(triangles: &[[ZyxVertex; 3]]) -> Vec<(usize, usize)> {
+    let mut by_edge: HashMap<(ZyxVertex, ZyxVertex), Vec<usize>> = HashMap::new();
+    for (i, t) in triangles.iter().enumerate() {
+        for (a, b) in edges(t) {
+            by_edge.entry((a.min(b), a.max(b))).or_default().push(i);
+        }
+    }
+    let normals: Vec<Vector> = triangles.iter().map(normal).collect();
+    by_edge
+        .into_iter()
+        .filter_map(|((a, b), faces)| match faces[..] {
+            [i, j] if runs(&triangles[i], a, b) != runs(&triangles[j], a, b) => Some((i, j)),
+            _ => None,
+        })
+        .filter(|&(i, j)| {
+            let (n, m) = (normals[i], normals[j]);
+            cross(n, m) == [0; 3] && dot(n, m) > 0
+        })
+        .collect()
+}
+
+/// The triangle's three directed edges.
+fn edges(t: &[ZyxVertex; 3]) -> [(ZyxVertex, ZyxVertex); 3] {
+    [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])]
+}
+
+/// Whether the triangle walks its edge {a, b} from a to b.
+fn runs(t: &[ZyxVertex; 3], a: ZyxVertex, b: ZyxVertex) -> bool {
+    edges(t).contains(&(a, b))
+}
+
+/// The fan from the smallest corner of a flat region, if the region is one strictly convex
+/// polygon whose corners are all on its boundary.
+fn convex_fan(region: &[[ZyxVertex; 3]]) -> Option<Vec<[ZyxVertex; 3]>> {
+    let directed: HashSet<(ZyxVertex, ZyxVertex)> = region.iter().flat_map(edges).collect();
+    let mut next: HashMap<ZyxVertex, ZyxVertex> = HashMap::new();
+    for &(a, b) in &directed {
+        // An edge without its reverse is on the boundary; a corner the boundary leaves twice
+        // pinches the region into two loops.
+        if !directed.contains(&(b, a)) && next.insert(a, b).is_some() {
+            return None;
+        }
+    }
+    let corners: HashSet<ZyxVertex> = region.iter().flatten().copied().collect();
+    let start = *corners.iter().min()?;
+    let mut boundary = vec![start];
+    let mut at = *next.get(&start)?;
+    while at != start {
+        if boundary.len() > next.len() {
+            return None;
+        }
+        boundary.push(at);
+        at = *next.get(&at)?;
+    }
+    // One loop through every corner, and the count of a disk's triangulation.
+    if boundary.len() != next.len()
+        || boundary.len() != corners.len()
+        || boundary.len() != region.len() + 2
+    {
+        return None;
+    }
+    let up = normal(&region[0]);
+    let n = boundary.len();
+    let strictly_convex = (0..n).all(|k| {
+        let [p, q, r] = [boundary[k], boundary[(k + 1) % n], boundary[(k + 2) % n]];
+        dot(cross(sub(q, p), sub(r, q)), up) > 0
+    });
+    strictly_convex.then(|| (1..n - 1).map(|k| [start, boundary[k], boundary[k + 1]]).collect())
+}
+
+fn normal(t: &[ZyxVertex; 3]) -> Vector {
+    cross(sub(t[1], t[0]), sub(t[2], t[0]))
+}
+
+fn sub(a: ZyxVertex, b: ZyxVertex) -> Vector {
+    std::array::from_fn(|k| i64::from(a[k]) - i64::from(b[k]))
+}
+
+// Grid cells are below 2^10, so edge vectors below 2^11, normals below 2^23 and their cross
+// products below 2^47: exact in i64.
+fn cross(a: Vector, b: Vector) -> Vector {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn dot(a: Vector, b: Vector) -> i64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Union-find over face indices: flat neighbours end up with one root per region.
+struct Regions {
+    parent: Vec<usize>,
+}
+
+impl Regions {
+    fn new(n: usize) -> Self {
+        Self { parent: (0..n).collect() }
+    }
+
+    fn root(&mut self, mut i: usize) -> usize {
+        while self.parent[i] != i {
+            self.parent[i] = self.parent[self.parent[i]];
+            i = self.parent[i];
+        }
+        i
+    }
+
+    fn join(&mut self, i: usize, j: usize) {
+        let (a, b) = (self.root(i), self.root(j));
+        self.parent[a] = b;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+
+    use super::*;
+    use crate::mesh::primitives::{cuboid, frustum};
+    use crate::tokenize::{is_canonical_face, tokenize};
+
+    /// The sides of `cuboid`'s box as corner loops, counter-clockwise seen from outside.
+    const BOX_SIDES: [[u32; 4]; 6] =
+        [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
+
+    /// The box with each side split along the diagonal that `diagonals` picks (bit per side).
+    fn box_split(diagonals: u32) -> Mesh {
+        let faces = BOX_SIDES
+            .iter()
+            .enumerate()
+            .flat_map(|(side, &[a, b, c, d])| {
+                if diagonals >> side & 1 == 0 {
+                    [[a, b, c], [a, c, d]]
+                } else {
+                    [[b, c, d], [b, d, a]]
+                }
+            })
+            .collect();
+        Mesh::new(cuboid([0.9, 0.5, 0.3]).vertices, faces)
+    }
+
+    fn sorted(mut faces: Vec<FaceToken>) -> Vec<FaceToken> {
+        faces.sort_unstable();
+        faces
+    }
+
+    fn tokens(mesh: &Mesh) -> Vec<FaceToken> {
+        let q = Quantizer::default();
+        let frame = Normalization::fit(&mesh.vertices).unwrap();
+        let corner = |i: u32| frame.apply(mesh.vertices[i as usize]).map(|c| q.quantize(c));
+        mesh.faces
+            .iter()
+            .map(|&[a, b, c]| canonical_face([corner(a), corner(b), corner(c)]).unwrap())
+            .collect()
+    }
+
+    #[test]
+    fn every_split_of_a_box_gives_one_sequence() {
+        let first = tokenize(&box_split(0).normalized().unwrap().0, Quantizer::default()).faces;
+        for diagonals in 1..64 {
+            let t = tokenize(&box_split(diagonals).normalized().unwrap().0, Quantizer::default());
+            assert_eq!(t.faces, first, "split {diagonals:06b}");
+        }
+        // Each side is a fan from its smallest corner: both its faces start there, and 12
+        // faces start at one of the box's 6 "smallest corner of a side" vertices.
+        assert_eq!(first.len(), 12);
+        let mut starts: HashMap<ZyxVertex, usize> = HashMap::new();
+        for f in &first {
+            *starts.entry(face_vertices(f)[0]).or_default() += 1;
+        }
+        assert!(starts.values().all(|&n| n % 2 == 0), "{starts:?}");
+    }
+
+    #[test]
+    fn regions_that_are_not_one_convex_polygon_are_left_alone() {
+        // All in the plane z = 0, wound counter-clockwise seen from +z.
+        let v = |x: f32, y: f32| [x, y, 0.0];
+        let cases = [
+            // An L: six corners, one of them reflex.
+            Mesh::new(
+                vec![v(0., 0.), v(2., 0.), v(2., 1.), v(1., 1.), v(1., 2.), v(0., 2.)],
+                vec![[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]],
+            ),
+            // A square around a centre vertex.
+            Mesh::new(
+                vec![v(0., 0.), v(2., 0.), v(2., 2.), v(0., 2.), v(1., 1.)],
+                vec![[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]],
+            ),
+            // A square with a corner in the middle of a side: not strictly convex.
+            Mesh::new(
+                vec![v(0., 0.), v(1., 0.), v(2., 0.), v(2., 2.), v(0., 2.)],
+                vec![[1, 2, 3], [1, 3, 4], [1, 4, 0]],
+            ),
+        ];
+        for mesh in cases {
+            let before = tokens(&mesh);
+            assert_eq!(sorted(canonical_polygons(&before)), sorted(before.clone()));
+        }
+    }
+
+    #[test]
+    fn prism_sides_become_fans_and_caps_around_a_centre_stay() {
+        // `frustum` closes its caps with a fan around a centre vertex: not a polygon without
+        // inner corners, so they keep their faces.
+        let prism = frustum(0.5, 0.5, 0.8, 7);
+        let before = tokens(&prism);
+        let after = canonical_polygons(&before);
+        let by_plane = |faces: &[FaceToken]| {
+            let mut planes: HashMap<Vector, Vec<FaceToken>> = HashMap::new();
+            for f in faces {
+                let n = normal(&face_vertices(f));
+                let g = n.iter().fold(0, |g, &c| gcd(g, c.abs()));
+                planes.entry(n.map(|c| c / g)).or_default().push(*f);
+            }
+            planes
+        };
+        let (planes_before, planes_after) = (by_plane(&before), by_plane(&after));
+        assert_eq!(planes_after.len(), 9, "7 sides and 2 caps");
+        for (plane, faces) in planes_after {
+            if faces.len() == 2 {
+                let smallest = faces.iter().flat_map(face_vertices).min().unwrap();
+                assert!(faces.iter().all(|f| face_vertices(f)[0] == smallest), "{faces:?}");
+            } else {
+                assert_eq!(sorted(faces), sorted(planes_before[&plane].clone()));
+            }
+        }
+    }
+
+    fn gcd(a: i64, b: i64) -> i64 {
+        if b == 0 { a } else { gcd(b, a % b) }
+    }
+
+    #[test]
+    fn canonical_triangulation_keeps_vertices_and_fixes_the_split() {
+        let reference = canonical_triangulation(&box_split(0));
+        assert_eq!(reference.vertices, box_split(0).vertices);
+        let as_sets = |m: &Mesh| sorted(tokens(m));
+        for diagonals in [1, 22, 63] {
+            assert_eq!(
+                as_sets(&canonical_triangulation(&box_split(diagonals))),
+                as_sets(&reference)
+            );
+        }
+        // Unusable input comes back as it is.
+        let flat = Mesh::new(vec![[1.0; 3]; 3], vec![[0, 1, 2]]);
+        assert_eq!(canonical_triangulation(&flat), flat);
+        let dangling = Mesh::new(cuboid([1.0; 3]).vertices, vec![[0, 1, 9]]);
+        assert_eq!(canonical_triangulation(&dangling), dangling);
+    }
+
+    /// A strictly convex polygon: corners on the parabola y = t^2 in the plane z = 5 (ZYX
+    /// cells [5, t^2, t]), counter-clockwise, split as a fan from corner `start`.
+    fn parabola_fan(ts: &[u16], start: usize) -> Vec<FaceToken> {
+        let corners: Vec<ZyxVertex> = ts.iter().map(|&t| [5, t * t, t]).collect();
+        let n = corners.len();
+        (1..n - 1)
+            .map(|k| {
+                let c = |i: usize| corners[(start + i) % n];
+                let [a, b, d] = [c(0), c(k), c(k + 1)];
+                // Back to file order (x, y, z) for `canonical_face`.
+                canonical_face([a, b, d].map(|[z, y, x]| [x, y, z])).unwrap()
+            })
+            .collect()
+    }
+
+    proptest! {
+        #[test]
+        fn a_convex_polygon_gets_one_fan_whatever_its_split(
+            ts in prop::collection::btree_set(0u16..32, 3..12),
+            starts in prop::array::uniform2(0usize..12),
+        ) {
+            let ts: Vec<u16> = ts.into_iter().collect();
+            let n = ts.len();
+            let a = sorted(canonical_polygons(&parabola_fan(&ts, starts[0] % n)));
+            let b = sorted(canonical_polygons(&parabola_fan(&ts, starts[1] % n)));
+            prop_assert_eq!(&a, &b);
+            prop_assert_eq!(a, sorted(parabola_fan(&ts, 0)), "t = {:?} starts the fan", ts[0]);
+        }
+
+        #[test]
+        fn re_splitting_keeps_the_surface_and_is_its_own_fixed_point(
+            faces in prop::collection::vec(
+                prop::array::uniform3(prop::array::uniform3(0u16..4)), 0..40)
+        ) {
+            let tokens: Vec<FaceToken> = faces.into_iter().filter_map(canonical_face).collect();
+            let once = canonical_polygons(&tokens);
+            prop_assert_eq!(once.len(), tokens.len());
+            prop_assert!(once.iter().all(is_canonical_face));
+            // The summed normals (twice the vector area) of the whole input are kept exactly.
+            let area = |fs: &[FaceToken]| {
+                fs.iter().map(|f| normal(&face_vertices(f))).fold([0; 3], |s, n| {
+                    [s[0] + n[0], s[1] + n[1], s[2] + n[2]]
+                })
+            };
+            prop_assert_eq!(area(&once), area(&tokens));
+            prop_assert_eq!(sorted(canonical_polygons(&once)), sorted(once));
+        }
+    }
+}
