@@ -81,7 +81,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     let q = Quantizer::new(meshstream::tokenize::DEFAULT_LEVELS)?;
     let t = time_per_run(budget, || tokenize_mesh(&dense, q));
     table.add_row([
-        "tokenize (normalize, quantize, weld, order)".to_string(),
+        "tokenize (normalize, quantize, weld, split, order)".to_string(),
         format!("{faces} faces, Q = {}", q.levels()),
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.2} M faces/s", faces as f64 / t.as_secs_f64() / 1e6),

@@ -1,5 +1,6 @@
 //! One triangulation per planar polygon: a flat convex region of a mesh (a box's side, a
-//! prism's cap) is re-split as a fan from its smallest corner in ZYX order.
+//! wedge's slope, an n-gon cap without a centre vertex) is re-split as a fan from its smallest
+//! corner in ZYX order.
 //!
 //! How a flat quad is split into two triangles leaves no trace in the surface, so nothing in
 //! the input points can tell the decoder which diagonal the ground truth used: with arbitrary

@@ -378,6 +378,35 @@ mod tests {
     }
 
     #[test]
+    fn primitives_come_split_as_tokenization_splits_them() {
+        // A model learns tokenized faces; held-aside shapes can be rebuilt face for face only if
+        // their own triangles are those faces.
+        use crate::tokenize::{Quantizer, detokenize, tokenize};
+        let q = Quantizer::default();
+        let corner_sets = |m: &Mesh| {
+            let mut sets: Vec<_> = m
+                .faces
+                .iter()
+                .map(|f| {
+                    let mut t = m.triangle(f).map(|v| v.map(|c| q.quantize(c)));
+                    t.sort_unstable();
+                    t
+                })
+                .collect();
+            sets.sort_unstable();
+            sets
+        };
+        let mut boxes = 0;
+        for (kind, mesh) in ProceduralShapes::of_kinds(9, 400, &ShapeKind::PRIMITIVES).take(60) {
+            let (normalized, _) = mesh.normalized().unwrap();
+            let tokenized = detokenize(&tokenize(&normalized, q).faces, q);
+            assert_eq!(corner_sets(&normalized), corner_sets(&tokenized), "{kind:?}");
+            boxes += usize::from(kind == ShapeKind::Box);
+        }
+        assert!(boxes > 0);
+    }
+
+    #[test]
     fn face_budget_is_respected() {
         for (_, mesh) in ProceduralShapes::new(3, 40).take(100) {
             assert!(mesh.faces.len() <= 40);
