@@ -1,6 +1,7 @@
 //! The triangle mesh (or point cloud) type, its file formats, normalization and sampling.
 
 mod assemble;
+mod disjoint_sets;
 mod error;
 mod files;
 mod format;
@@ -18,6 +19,7 @@ mod stl;
 mod text;
 pub mod transform;
 
+pub(crate) use disjoint_sets::DisjointSets;
 pub use error::MeshError;
 pub use files::{expand_mesh_paths, mesh_files_in};
 pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};

@@ -1,7 +1,7 @@
 //! Parts of a mesh: connected components of faces that share vertices, each with a flat
 //! colour, so that previews show how a generated mesh is put together.
 
-use crate::mesh::Mesh;
+use crate::mesh::{DisjointSets, Mesh};
 
 /// Twelve colours that stay distinct under shading (Tableau 10 plus two); parts beyond twelve
 /// reuse them in order.
@@ -50,38 +50,6 @@ pub fn face_parts(mesh: &Mesh) -> Vec<usize> {
             *slot
         })
         .collect()
-}
-
-/// Union-find with path halving and union by size.
-struct DisjointSets {
-    parent: Vec<usize>,
-    size: Vec<usize>,
-}
-
-impl DisjointSets {
-    fn new(n: usize) -> Self {
-        Self { parent: (0..n).collect(), size: vec![1; n] }
-    }
-
-    /// The representative of `i`'s set; `None` when `i` is out of range.
-    fn find(&mut self, mut i: usize) -> Option<usize> {
-        while *self.parent.get(i)? != i {
-            let grandparent = self.parent[self.parent[i]];
-            self.parent[i] = grandparent;
-            i = grandparent;
-        }
-        Some(i)
-    }
-
-    fn union(&mut self, a: usize, b: usize) {
-        let (Some(a), Some(b)) = (self.find(a), self.find(b)) else { return };
-        if a == b {
-            return;
-        }
-        let (big, small) = if self.size[a] >= self.size[b] { (a, b) } else { (b, a) };
-        self.parent[small] = big;
-        self.size[big] += self.size[small];
-    }
 }
 
 #[cfg(test)]

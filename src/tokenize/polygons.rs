@@ -17,7 +17,7 @@
 
 use std::collections::{HashMap, HashSet};
 
-use crate::mesh::{Mesh, Normalization};
+use crate::mesh::{DisjointSets, Mesh, Normalization};
 
 use super::order::{ZyxVertex, face_from_vertices, face_vertices};
 use super::{FaceToken, MAX_LEVELS, Quantizer, canonical_face};
@@ -31,18 +31,21 @@ type Vector = [i64; 3];
 /// its own fixed point.
 pub fn canonical_polygons(faces: &[FaceToken]) -> Vec<FaceToken> {
     let triangles: Vec<[ZyxVertex; 3]> = faces.iter().map(face_vertices).collect();
-    let mut regions = Regions::new(triangles.len());
+    let mut regions = DisjointSets::new(triangles.len());
     for (i, j) in flat_neighbours(&triangles) {
-        regions.join(i, j);
+        regions.union(i, j);
     }
+    // Every index is in range, so `find` always has an answer.
+    let region_of: Vec<usize> =
+        (0..triangles.len()).map(|i| regions.find(i).unwrap_or(i)).collect();
     let mut members: HashMap<usize, Vec<usize>> = HashMap::new();
-    for i in 0..triangles.len() {
-        members.entry(regions.root(i)).or_default().push(i);
+    for (i, &region) in region_of.iter().enumerate() {
+        members.entry(region).or_default().push(i);
     }
 
     let mut out = Vec::with_capacity(faces.len());
-    for i in 0..triangles.len() {
-        let region = &members[&regions.root(i)];
+    for (i, region) in region_of.iter().enumerate() {
+        let region = &members[region];
         if region.len() == 1 {
             out.push(faces[i]);
         } else if region[0] == i {
@@ -173,30 +176,6 @@ fn cross(a: Vector, b: Vector) -> Vector {
 
 fn dot(a: Vector, b: Vector) -> i64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// Union-find over face indices: flat neighbours end up with one root per region.
-struct Regions {
-    parent: Vec<usize>,
-}
-
-impl Regions {
-    fn new(n: usize) -> Self {
-        Self { parent: (0..n).collect() }
-    }
-
-    fn root(&mut self, mut i: usize) -> usize {
-        while self.parent[i] != i {
-            self.parent[i] = self.parent[self.parent[i]];
-            i = self.parent[i];
-        }
-        i
-    }
-
-    fn join(&mut self, i: usize, j: usize) {
-        let (a, b) = (self.root(i), self.root(j));
-        self.parent[a] = b;
-    }
 }
 
 #[cfg(test)]
