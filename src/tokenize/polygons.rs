@@ -19,7 +19,7 @@ use std::collections::{HashMap, HashSet};
 
 use crate::mesh::{DisjointSets, Mesh, Normalization};
 
-use super::order::{ZyxVertex, face_from_vertices, face_vertices};
+use super::order::{ZyxVertex, face_from_vertices, face_vertices, vertex_set_key};
 use super::{FaceToken, MAX_LEVELS, Quantizer, canonical_face};
 
 type Vector = [i64; 3];
@@ -43,6 +43,9 @@ pub fn canonical_polygons(faces: &[FaceToken]) -> Vec<FaceToken> {
         members.entry(region).or_default().push(i);
     }
 
+    // A fan must not repeat a face outside its region (one folded over it, the other side of a
+    // sheet): that region then keeps its faces, so no face's winding is lost to the re-split.
+    let taken: HashSet<[ZyxVertex; 3]> = faces.iter().map(vertex_set_key).collect();
     let mut out = Vec::with_capacity(faces.len());
     for (i, region) in region_of.iter().enumerate() {
         let region = &members[region];
@@ -51,8 +54,15 @@ pub fn canonical_polygons(faces: &[FaceToken]) -> Vec<FaceToken> {
         } else if region[0] == i {
             // A region is handled once, at its first face.
             let corners: Vec<[ZyxVertex; 3]> = region.iter().map(|&f| triangles[f]).collect();
-            match convex_fan(&corners) {
-                Some(fan) => out.extend(fan.into_iter().map(face_from_vertices)),
+            let own: HashSet<[ZyxVertex; 3]> =
+                region.iter().map(|&f| vertex_set_key(&faces[f])).collect();
+            let fan = convex_fan(&corners)
+                .map(|fan| fan.into_iter().map(face_from_vertices).collect::<Vec<_>>())
+                .filter(|fan| {
+                    fan.iter().map(vertex_set_key).all(|k| own.contains(&k) || !taken.contains(&k))
+                });
+            match fan {
+                Some(fan) => out.extend(fan),
                 None => out.extend(region.iter().map(|&f| faces[f])),
             }
         }
