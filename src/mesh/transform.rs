@@ -24,7 +24,7 @@ pub fn determinant(m: &Mat3) -> f32 {
 
 /// The cofactor matrix: proportional to the inverse transpose, which is what normals need
 /// (the positive factor is removed by renormalizing).
-fn cofactor(m: &Mat3) -> Mat3 {
+pub(crate) fn cofactor(m: &Mat3) -> Mat3 {
     let c =
         |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
     [
@@ -34,10 +34,15 @@ fn cofactor(m: &Mat3) -> Mat3 {
     ]
 }
 
-/// Rotation by `angle` radians about the unit `axis` (right-handed).
+/// Rotation by `angle` radians about the unit `axis` (right-handed). A quarter turn about a
+/// coordinate axis is an exact permutation: `f32` cannot hold pi/2, and the -4.4e-8 its cosine
+/// comes out as would move coordinates meant to be 0 off the middle of the quantization grid,
+/// which is a cell boundary.
 pub fn rotation(axis: [f32; 3], angle: f32) -> Mat3 {
     let [x, y, z] = axis;
+    let exact = |v: f32| if v.abs() < 1e-6 { 0.0 } else { v };
     let (s, c) = angle.sin_cos();
+    let (s, c) = (exact(s), exact(c));
     let t = 1.0 - c;
     [
         [t * x * x + c, t * x * y - s * z, t * x * z + s * y],
@@ -112,6 +117,16 @@ mod tests {
         assert!((determinant(&r) - 1.0).abs() < 1e-6);
         let q = rotation_from_quaternion([0.3, -1.2, 0.5, 2.0]);
         assert_near(mat_vec(&mat_mul(&q, &transpose(&q)), [1.0, 2.0, 3.0]), [1.0, 2.0, 3.0]);
+    }
+
+    #[test]
+    fn quarter_turns_are_exact_permutations() {
+        use std::f32::consts::{FRAC_PI_2, PI};
+        let about_x = rotation([1.0, 0.0, 0.0], -FRAC_PI_2);
+        assert_eq!(about_x, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]);
+        let half = rotation([0.0, 1.0, 0.0], PI);
+        assert_eq!(half, [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]);
+        assert_eq!(mat_vec(&about_x, [0.3, 0.0, 0.7]), [0.3, 0.7, 0.0]);
     }
 
     fn transpose(m: &Mat3) -> Mat3 {
