@@ -233,12 +233,12 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
 }
 
 #[test]
-fn serve_refuses_a_candidate_default_out_of_range() {
-    for n in ["0", "17"] {
-        let o = meshstream(&["serve", "--candidates", n, "--model", "/no/model"]);
+fn serve_refuses_candidate_and_fitting_defaults_out_of_range() {
+    for (flag, n) in [("--candidates", "0"), ("--candidates", "17"), ("--fit-rounds", "201")] {
+        let o = meshstream(&["serve", flag, n, "--model", "/no/model"]);
         assert!(!o.status.success());
         let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains("--candidates") && !err.contains("/no/model"), "{err}");
+        assert!(err.contains(flag) && !err.contains("/no/model"), "{err}");
     }
 }
 

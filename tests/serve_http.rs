@@ -111,8 +111,9 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
     let server = Server::start(&[]);
-    // One candidate for both: a whole mesh otherwise defaults to the best of several.
-    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1}));
+    // One candidate and no fitting for both: a whole mesh otherwise defaults to the best of
+    // several, fitted to the points.
+    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1, "fit_rounds": 0}));
     let (_, glb) = reconstruct_glb(&server, &body).await;
     let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
     for accept in ["text/event-stream", "application/x-ndjson"] {
@@ -152,6 +153,32 @@ async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
     let asked = points_json(&shape(), json!({"max_faces": 40, "candidates": 2}));
     stream_events(&server, &asked, "application/x-ndjson").await;
     assert_eq!(finished().await, 6.0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
+    let server = Server::start(&["--candidates", "1", "--fit-rounds", "7"]);
+    let c = client();
+    let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["defaults"]["fit_rounds"], json!({"whole_mesh": 7, "stream": 0}));
+    let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    let fitted = read(&reconstruct_glb(&server, &points_json(&shape(), json!({}))).await.1);
+    let as_decoded = json!({"fit_rounds": 0});
+    let decoded = read(&reconstruct_glb(&server, &points_json(&shape(), as_decoded)).await.1);
+    // The same faces, their corners moved.
+    assert_eq!(fitted.faces, decoded.faces);
+    assert_ne!(fitted.vertices, decoded.vertices);
+    // A stream that asks is fitted alike; its faces come together at the end.
+    let asked = points_json(&shape(), json!({"fit_rounds": 7}));
+    let (faces, _) = stream_events(&server, &asked, "application/x-ndjson").await;
+    assert_eq!(faces.len(), fitted.faces.len());
+    for (i, (_, f)) in faces.iter().enumerate() {
+        let streamed: Vec<[f32; 3]> = serde_json::from_value(f["vertices"].clone()).unwrap();
+        let face = fitted.faces[i].map(|v| fitted.vertices[v as usize]);
+        for (a, b) in streamed.iter().zip(&face) {
+            assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?}");
+        }
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -271,6 +298,13 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (
             json,
             format!(r#"{{"points": {three}, "candidates": 17}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "fit_rounds": 201}}"#).into_bytes(),
             "",
             422,
             "invalid_input",

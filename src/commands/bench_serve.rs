@@ -10,7 +10,7 @@ use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{ReadLimits, primitives, sample_surface};
+use meshstream::mesh::{FitOptions, ReadLimits, primitives, sample_surface};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
@@ -72,6 +72,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         limits: InputLimits { max_points: 1 << 20, read: ReadLimits::default() },
         max_body_bytes: 64 << 20,
         whole_mesh_candidates: DEFAULT_CANDIDATES,
+        whole_mesh_fit_rounds: FitOptions::default().rounds,
         request_timeout: Duration::from_secs(600),
         shutdown_grace: Duration::from_secs(5),
         image: ImageServeConfig::default(),

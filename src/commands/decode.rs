@@ -9,8 +9,8 @@ use anyhow::Context;
 use candle_core::Tensor;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use meshstream::candidates::best_of;
-use meshstream::mesh::{Format, Normalization, write_mesh_file};
+use meshstream::candidates::{best_of, fitted_mesh};
+use meshstream::mesh::{FitOptions, Format, Mesh, Normalization, write_mesh_file};
 use meshstream::model::{
     DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, GenerateOptions, SamplingParams, generate,
 };
@@ -48,22 +48,24 @@ pub fn progress(bar: ProgressBar, template: &str) -> ProgressBar {
     bar
 }
 
-/// The input points of a reconstruction (normalized frame), and how many candidate meshes to
-/// decode and judge against them.
-pub struct Candidates<'a> {
-    pub points: &'a [[f32; 3]],
-    pub count: usize,
+/// What a reconstruction decodes from: its input points (normalized frame, with normals),
+/// how many candidate meshes to decode and judge against them, and how to fit the chosen one
+/// to them.
+pub struct FromPoints<'a> {
+    pub cloud: &'a Mesh,
+    pub candidates: usize,
+    pub fit: FitOptions,
 }
 
-/// Decodes `latents` (K, latent_dim) into faces (the candidate closest to the input points
-/// when there are `candidates`), takes them to the caller's frame with `normalization`, and
-/// writes the mesh; `seed` drives sampling when the temperature is not 0. Reports what it
+/// Decodes `latents` (K, latent_dim) into faces (for a reconstruction, the candidate closest
+/// to the input points, fitted to them), takes them to the caller's frame with
+/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not 0. Reports what it
 /// wrote, timed from `start`.
 pub fn decode_to_file(
     model: &FaceModel,
     latents: &Tensor,
     args: &DecodeArgs,
-    candidates: Option<Candidates>,
+    from_points: Option<FromPoints>,
     seed: u64,
     normalization: Normalization,
     start: Instant,
@@ -83,9 +85,10 @@ pub fn decode_to_file(
     let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let bar =
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
-    let (faces, reason) = match candidates {
-        Some(c) => {
-            let best = best_of(model, latents, &options, c.count, c.points, q, || bar.inc(1))?;
+    let (faces, reason) = match &from_points {
+        Some(p) => {
+            let points = &p.cloud.vertices;
+            let best = best_of(model, latents, &options, p.candidates, points, q, || bar.inc(1))?;
             (best.faces, best.finish)
         }
         None => generate(model, latents, options, |_| {
@@ -94,8 +97,12 @@ pub fn decode_to_file(
         })?,
     };
     bar.finish_and_clear();
-    let mesh = normalization.invert_mesh(&detokenize(&faces, q));
-    anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
+    anyhow::ensure!(!faces.is_empty(), "the model produced no faces ({reason:?})");
+    let mesh = match &from_points {
+        Some(p) if p.fit.rounds > 0 => fitted_mesh(&faces, q, p.cloud, &p.fit, seed),
+        _ => detokenize(&faces, q),
+    };
+    let mesh = normalization.invert_mesh(&mesh);
     write(&mesh, &args.output, args.format)?;
     eprintln!(
         "wrote {}: {} faces, {} vertices in {:.1} s (stopped by {reason:?})",
@@ -107,6 +114,6 @@ pub fn decode_to_file(
     Ok(())
 }
 
-fn write(mesh: &meshstream::mesh::Mesh, path: &Path, format: Option<Format>) -> anyhow::Result<()> {
+fn write(mesh: &Mesh, path: &Path, format: Option<Format>) -> anyhow::Result<()> {
     write_mesh_file(mesh, path, format).with_context(|| format!("writing {}", path.display()))
 }

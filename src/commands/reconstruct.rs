@@ -4,9 +4,10 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::DEFAULT_CANDIDATES;
+use meshstream::mesh::FitOptions;
 use meshstream::model::{checkpoint, parse_device};
 
-use super::decode::{Candidates, DecodeArgs, decode_to_file};
+use super::decode::{DecodeArgs, FromPoints, decode_to_file};
 use super::{candidate_count, input_points};
 
 #[derive(Args)]
@@ -29,6 +30,13 @@ pub struct ReconstructArgs {
     /// closest to the input points: better meshes for more decoding work; 1 decodes one mesh.
     #[arg(long, default_value_t = DEFAULT_CANDIDATES, value_parser = candidate_count())]
     candidates: usize,
+    /// Rounds of moving the chosen mesh's corners to fit the input points (faces unchanged);
+    /// 0 keeps them where the model put them.
+    #[arg(long, default_value_t = FitOptions::default().rounds)]
+    fit_rounds: usize,
+    /// The furthest fitting may move a corner, in units of half the input's longest side.
+    #[arg(long, default_value_t = FitOptions::default().max_shift)]
+    fit_max_shift: f32,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -39,12 +47,17 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let (cloud, normalization) = input_points(&args.input, cfg.num_points, args.seed)?;
     let start = Instant::now();
     let latents = model.encode_point_cloud(&cloud)?;
-    let candidates = Candidates { points: &cloud.vertices, count: args.candidates };
+    let fit = FitOptions {
+        rounds: args.fit_rounds,
+        max_shift: args.fit_max_shift,
+        ..FitOptions::default()
+    };
+    let from_points = FromPoints { cloud: &cloud, candidates: args.candidates, fit };
     decode_to_file(
         &model,
         &latents,
         &args.decode,
-        Some(candidates),
+        Some(from_points),
         args.seed,
         normalization,
         start,

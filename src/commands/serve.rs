@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::ReadLimits;
+use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, ReadLimits};
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 use tracing_subscriber::EnvFilter;
@@ -85,6 +85,11 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_CANDIDATES", default_value_t = DEFAULT_CANDIDATES,
           value_parser = candidate_count())]
     candidates: usize,
+    /// Fitting rounds of a reconstruction answered with a whole mesh that does not say (see
+    /// `reconstruct --fit-rounds`; at most 200); streamed answers take 0 unless they say.
+    #[arg(long, env = "MESHSTREAM_FIT_ROUNDS", default_value_t = FitOptions::default().rounds as u16,
+          value_parser = clap::value_parser!(u16).range(..=MAX_FIT_ROUNDS as i64))]
+    fit_rounds: u16,
     /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
     /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
     #[arg(long, env = "MESHSTREAM_IMAGE_MODEL")]
@@ -154,6 +159,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         },
         max_body_bytes: args.max_body_bytes,
         whole_mesh_candidates: args.candidates,
+        whole_mesh_fit_rounds: usize::from(args.fit_rounds),
         request_timeout: seconds("request-timeout", args.request_timeout)?,
         shutdown_grace: seconds("shutdown-grace", args.shutdown_grace)?,
         model_dir: args.model.clone(),

@@ -1,14 +1,16 @@
-//! Best-of-N requests (`DecodeOptions::candidates`): the candidates run as ordinary requests,
-//! batched with everything else, and a task streams the one closest to the input points once
-//! all have finished (see `crate::candidates`). Its faces therefore arrive together at the
-//! end, not one by one.
+//! Best-of-N and fitted requests (`DecodeOptions::candidates`, `fit_rounds`): the candidates
+//! run as ordinary requests, batched with everything else, and a task streams the one closest
+//! to the input points once all have finished (see `crate::candidates`), its corners fitted to
+//! those points when asked. Its faces therefore arrive together at the end, not one by one.
 
 use std::time::Instant;
 
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{candidate_sampling, closest_to_input};
+use crate::candidates::{candidate_sampling, closest_to_input, fitted_mesh};
+use crate::mesh::{FitOptions, Mesh};
+use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, face_positions};
 
 use super::{
@@ -30,7 +32,15 @@ pub(super) fn submit(
     };
     let runtime = tokio::runtime::Handle::try_current()
         .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
-    let points = prepared.points.clone();
+    let cloud = Mesh {
+        vertices: prepared.points.clone(),
+        faces: Vec::new(),
+        normals: Some(prepared.normals.clone()),
+    };
+    let fit = match request.options.fit_rounds.unwrap_or(0) {
+        0 => None,
+        rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
+    };
     let normalization = prepared.normalization;
     let seed = request.options.sampling.seed;
     let started = Instant::now();
@@ -42,6 +52,7 @@ pub(super) fn submit(
             candidate.id = format!("{}/candidate-{i}", request.id);
             candidate.options.sampling = sampling;
             candidate.options.candidates = None;
+            candidate.options.fit_rounds = None;
             engine.submit_one(candidate)
         })
         .collect::<Result<Vec<_>, _>>()?;
@@ -53,10 +64,18 @@ pub(super) fn submit(
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
-        let event = match pick(finished, q, &points, seed) {
-            Ok(mut best) => {
-                for (index, &token) in best.tokens.iter().enumerate() {
-                    let vertices = face_positions(&token, q).map(|p| normalization.invert(p));
+        // Judging and fitting are CPU work: off the async runtime.
+        let chosen = tokio::task::spawn_blocking(move || {
+            let best = pick(finished, q, &cloud.vertices, seed)?;
+            let corners = corners(&best.tokens, q, &cloud, fit.as_ref(), seed);
+            Ok((best, corners))
+        })
+        .await
+        .unwrap_or_else(|e| Err(EngineError::Model(format!("choosing a candidate failed: {e}"))));
+        let event = match chosen {
+            Ok((mut best, corners)) => {
+                for (index, (&token, corners)) in best.tokens.iter().zip(corners).enumerate() {
+                    let vertices = corners.map(|p| normalization.invert(p));
                     let face = StreamedFace { index, token, vertices };
                     if tx.send(Event::Face(face)).await.is_err() {
                         return;
@@ -71,7 +90,24 @@ pub(super) fn submit(
         };
         let _ = tx.send(event).await;
     });
-    Ok(RequestStream::new(request.id, rx, normalization, q))
+    Ok(RequestStream::new(request.id, rx))
+}
+
+/// The corners of `tokens`' faces (normalized frame), fitted to `cloud` when `fit` is given.
+fn corners(
+    tokens: &[FaceToken],
+    q: Quantizer,
+    cloud: &Mesh,
+    fit: Option<&FitOptions>,
+    seed: u64,
+) -> Vec<[[f32; 3]; 3]> {
+    match fit {
+        None => tokens.iter().map(|t| face_positions(t, q)).collect(),
+        Some(fit) => {
+            let mesh = fitted_mesh(tokens, q, cloud, fit, seed);
+            mesh.faces.iter().map(|f| mesh.triangle(f)).collect()
+        }
+    }
 }
 
 /// The finished candidate closest to `points` (the first on ties); the first error when none

@@ -30,6 +30,7 @@ use tokio::sync::mpsc;
 
 use crate::candidates::MAX_CANDIDATES;
 use crate::diffusion::{DiffusionModel, DitConfig};
+use crate::mesh::MAX_FIT_ROUNDS;
 use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
 use crate::tokenize::Quantizer;
 
@@ -149,12 +150,14 @@ impl Engine {
     }
 
     /// Queues a request; its faces arrive on the returned stream. Refused at once when the
-    /// queue is full or the engine is shutting down. A request for several candidates queues
-    /// one request per candidate and needs a tokio runtime (see `best_of`).
+    /// queue is full or the engine is shutting down. A request for several candidates, or
+    /// fitted to its points, queues one request per candidate and needs a tokio runtime (see
+    /// `best_of`).
     pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
-        match request.options.candidates.unwrap_or(1) {
-            1 => self.submit_one(request),
-            n => {
+        let options = &request.options;
+        match (options.candidates.unwrap_or(1), options.fit_rounds.unwrap_or(0)) {
+            (1, 0) => self.submit_one(request),
+            (n, _) => {
                 self.check(&request).inspect_err(|e| self.shared.metrics.reject(e.code()))?;
                 best_of::submit(self, request, n)
             }
@@ -165,12 +168,7 @@ impl Engine {
         let metrics = &self.shared.metrics;
         let faces = self.check(&request).inspect_err(|e| metrics.reject(e.code()))?;
         let (tx, rx) = mpsc::channel(self.shared.config.stream_buffer);
-        let stream = RequestStream::new(
-            request.id.clone(),
-            rx,
-            request.conditioning.normalization(),
-            self.quantizer,
-        );
+        let stream = RequestStream::new(request.id.clone(), rx);
         let mut q = self.shared.lock();
         let refused = if q.closing.is_some() || q.stopped {
             Some(EngineError::ShuttingDown)
@@ -219,6 +217,17 @@ impl Engine {
         if candidates > 1 && matches!(request.conditioning, Conditioning::Image(_)) {
             return Err(EngineError::InvalidInput(
                 "candidates are judged against input points: an image request takes 1".into(),
+            ));
+        }
+        let fit_rounds = request.options.fit_rounds.unwrap_or(0);
+        if fit_rounds > MAX_FIT_ROUNDS {
+            return Err(EngineError::InvalidInput(format!(
+                "fit_rounds must be at most {MAX_FIT_ROUNDS}, got {fit_rounds}"
+            )));
+        }
+        if fit_rounds > 0 && matches!(request.conditioning, Conditioning::Image(_)) {
+            return Err(EngineError::InvalidInput(
+                "a mesh is fitted to input points: an image request has none".into(),
             ));
         }
         let cfg = &self.model_config;

@@ -90,6 +90,10 @@ pub struct DecodeOptions {
     /// Decode this many meshes (the first as asked, the others sampled) and keep the one
     /// closest to the input points; points requests only. `None`: 1.
     pub candidates: Option<usize>,
+    /// Rounds of fitting the finished mesh's corners to the input points (`mesh::fit`);
+    /// points requests only. Its faces then arrive together at the end, as with candidates.
+    /// `None` or 0: the corners as decoded, faces as they come.
+    pub fit_rounds: Option<usize>,
 }
 
 #[derive(Debug, Clone)]

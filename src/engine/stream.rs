@@ -4,9 +4,9 @@ use std::time::Duration;
 
 use tokio::sync::mpsc;
 
-use crate::mesh::{Mesh, Normalization};
+use crate::mesh::Mesh;
 use crate::model::FinishReason;
-use crate::tokenize::{FaceToken, Quantizer, detokenize};
+use crate::tokenize::FaceToken;
 
 use super::EngineError;
 
@@ -62,18 +62,11 @@ pub struct Completed {
 pub struct RequestStream {
     pub id: String,
     events: mpsc::Receiver<Event>,
-    normalization: Normalization,
-    quantizer: Quantizer,
 }
 
 impl RequestStream {
-    pub(super) fn new(
-        id: String,
-        events: mpsc::Receiver<Event>,
-        normalization: Normalization,
-        quantizer: Quantizer,
-    ) -> Self {
-        Self { id, events, normalization, quantizer }
+    pub(super) fn new(id: String, events: mpsc::Receiver<Event>) -> Self {
+        Self { id, events }
     }
 
     /// The next event; `None` after the last one (or if the engine went away).
@@ -89,20 +82,19 @@ impl RequestStream {
         out
     }
 
-    /// The mesh of the faces received so far, in the caller's coordinates.
-    pub fn assemble(&self, tokens: &[FaceToken]) -> Mesh {
-        self.normalization.invert_mesh(&detokenize(tokens, self.quantizer))
-    }
-
-    /// Waits for the whole request.
+    /// Waits for the whole request. The mesh is made of the faces' corners as they came,
+    /// which are the tokens' unless the mesh was fitted to its points.
     pub async fn collect(mut self) -> Result<Completed, EngineError> {
-        let mut tokens = Vec::new();
+        let (mut tokens, mut corners) = (Vec::new(), Vec::new());
         while let Some(event) = self.next().await {
             match event {
                 Event::Progress { .. } => {}
-                Event::Face(face) => tokens.push(face.token),
+                Event::Face(face) => {
+                    tokens.push(face.token);
+                    corners.push(face.vertices);
+                }
                 Event::Finished(summary) => {
-                    let mesh = self.assemble(&tokens);
+                    let mesh = Mesh::from_triangles(corners);
                     return Ok(Completed { mesh, tokens, summary });
                 }
                 Event::Failed(e) => return Err(e),

@@ -3,6 +3,7 @@ use std::time::{Duration, Instant};
 
 use super::*;
 use crate::candidates::{MAX_CANDIDATES, candidate_options, input_distance};
+use crate::mesh::Mesh;
 use crate::mesh::primitives::uv_sphere;
 use crate::model::testing::random_model;
 use crate::model::{GenerateOptions, Generation, generate, step_generations};
@@ -91,7 +92,7 @@ fn faces_arrive_in_the_callers_coordinates() {
     let mut stream = engine.submit(r).unwrap();
     runtime().block_on(async {
         let q = engine.quantizer;
-        let mut tokens = Vec::new();
+        let (mut tokens, mut corners) = (Vec::new(), Vec::new());
         while let Some(event) = stream.next().await {
             match event {
                 Event::Face(f) => {
@@ -100,6 +101,7 @@ fn faces_arrive_in_the_callers_coordinates() {
                         .map(|v| normalization.invert(v));
                     assert_eq!(f.vertices, expected);
                     tokens.push(f.token);
+                    corners.push(f.vertices);
                 }
                 Event::Finished(s) => {
                     assert_eq!(s.faces, tokens.len());
@@ -110,7 +112,7 @@ fn faces_arrive_in_the_callers_coordinates() {
             }
         }
         // The sphere was shifted to x = 4: so are the faces.
-        let mesh = stream.assemble(&tokens);
+        let mesh = Mesh::from_triangles(corners);
         let mean_x: f32 =
             mesh.vertices.iter().map(|v| v[0]).sum::<f32>() / mesh.vertices.len().max(1) as f32;
         assert!(tokens.is_empty() || (2.0..6.0).contains(&mean_x), "mean x {mean_x}");
@@ -187,6 +189,13 @@ fn invalid_options_are_refused_before_queueing() {
         r.options.candidates = Some(candidates);
         assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
     }
+    r.options.candidates = None;
+    r.options.fit_rounds = Some(crate::mesh::MAX_FIT_ROUNDS + 1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    // Fitting runs on the picking task too.
+    r.options.fit_rounds = Some(1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
+    r.options.fit_rounds = None;
     // Best-of-N runs a task that picks the winner: outside a runtime it has nowhere to run.
     r.options.candidates = Some(2);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
@@ -219,6 +228,31 @@ fn a_best_of_request_streams_the_candidate_closest_to_its_points() {
         .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
         .sum();
     assert_eq!(finished, 3.0, "{text}");
+}
+
+#[test]
+fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
+    let (engine, model) = engine(EngineConfig::default());
+    let plain = request(&model, 3, 30);
+    let mut fitted = plain.clone();
+    fitted.options.fit_rounds = Some(20);
+    let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
+    let (points, normalization) = (p.points.clone(), p.normalization);
+    let (plain, fitted) = runtime().block_on(async {
+        let plain = engine.submit(plain).unwrap().collect().await.unwrap();
+        (plain, engine.submit(fitted).unwrap().collect().await.unwrap())
+    });
+    // The same faces, decoded alone as without fitting; only their corners moved.
+    assert_eq!(fitted.tokens, plain.tokens);
+    assert_eq!(fitted.mesh.faces.len(), plain.mesh.faces.len());
+    assert_ne!(fitted.mesh.vertices, plain.mesh.vertices);
+    let from_points = |mesh: &Mesh| {
+        let normalized = normalization.apply_mesh(mesh);
+        let on_surface = crate::mesh::sample_surface(&normalized, 4096, 0).unwrap();
+        crate::metrics::point_set_distances(&on_surface.vertices, &points).chamfer
+    };
+    let (before, after) = (from_points(&plain.mesh), from_points(&fitted.mesh));
+    assert!(after < before, "Chamfer distance to the points {before} as decoded, {after} fitted");
 }
 
 #[test]

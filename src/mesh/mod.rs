@@ -4,6 +4,7 @@ mod assemble;
 mod disjoint_sets;
 mod error;
 mod files;
+mod fit;
 mod format;
 mod fps;
 mod gltf_read;
@@ -22,12 +23,19 @@ pub mod transform;
 pub(crate) use disjoint_sets::DisjointSets;
 pub use error::MeshError;
 pub use files::{expand_mesh_paths, mesh_files_in};
+pub use fit::{FitOptions, MAX_FIT_ROUNDS, fit_to_points};
 pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
 pub use normalize::Normalization;
 pub use points::{NORMAL_NEIGHBOURS, encoder_points, estimate_normals};
 pub use sample::sample_surface;
+
+/// What welds two corners: their exact position. Adding 0.0 turns -0.0 into 0.0, so that
+/// the two zeros weld.
+pub(crate) fn position_key(p: [f32; 3]) -> [u32; 3] {
+    p.map(|c| (c + 0.0).to_bits())
+}
 
 /// A triangle mesh, or a point cloud when `faces` is empty.
 ///
@@ -104,6 +112,24 @@ impl Mesh {
     }
 
     /// The three corner positions of a face.
+    /// A mesh of `triangles` whose corners at exactly the same position share one vertex,
+    /// numbered in order of first appearance.
+    pub fn from_triangles(triangles: impl IntoIterator<Item = [[f32; 3]; 3]>) -> Mesh {
+        let mut index_of = std::collections::HashMap::new();
+        let mut mesh = Mesh::default();
+        for corners in triangles {
+            let face = corners.map(|p| {
+                *index_of.entry(position_key(p)).or_insert_with(|| {
+                    mesh.vertices.push(p);
+                    // Saturating only past 2^32 distinct corners, far beyond any face limit.
+                    u32::try_from(mesh.vertices.len() - 1).unwrap_or(u32::MAX)
+                })
+            });
+            mesh.faces.push(face);
+        }
+        mesh
+    }
+
     pub fn triangle(&self, f: &[u32; 3]) -> [[f32; 3]; 3] {
         [self.vertices[f[0] as usize], self.vertices[f[1] as usize], self.vertices[f[2] as usize]]
     }

@@ -260,8 +260,7 @@ mod tests {
         for n in 3..=16 {
             for mesh in [frustum(0.37, 0.37, 1.0, n), uv_sphere(0.41, n, 5), torus(0.5, 0.13, n, 4)]
             {
-                // + 0.0 makes -0 and 0 one key.
-                let bits = |p: [f32; 3]| p.map(|v| (v + 0.0).to_bits());
+                let bits = crate::mesh::position_key;
                 let corners: std::collections::HashSet<_> =
                     mesh.vertices.iter().map(|&p| bits(p)).collect();
                 for &[x, y, z] in &mesh.vertices {

@@ -14,6 +14,37 @@ use super::{Mesh, MeshError, triangle_area};
 /// Returns a point cloud (no faces, `normals` set). Errors (`MeshError::Invalid`) for an
 /// invalid mesh, a mesh without faces, or one whose total area is zero.
 pub fn sample_surface(mesh: &Mesh, n: usize, seed: u64) -> Result<Mesh, MeshError> {
+    let samples = surface_samples(mesh, n, seed)?;
+    let normals = mesh.face_normals();
+    let (points, point_normals) =
+        samples.into_iter().map(|sample| (sample.position(mesh), normals[sample.face])).unzip();
+    Ok(Mesh { vertices: points, faces: Vec::new(), normals: Some(point_normals) })
+}
+
+/// A point on a mesh's surface, kept as where it lies rather than as a position, so that it
+/// can follow the corners when they move.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct SurfaceSample {
+    pub face: usize,
+    /// Barycentric weights of the face's three corners (they sum to 1).
+    pub weights: [f64; 3],
+}
+
+impl SurfaceSample {
+    pub fn position(&self, mesh: &Mesh) -> [f32; 3] {
+        let corners = mesh.triangle(&mesh.faces[self.face]);
+        std::array::from_fn(|k| {
+            (0..3).map(|c| self.weights[c] * f64::from(corners[c][k])).sum::<f64>() as f32
+        })
+    }
+}
+
+/// The samples behind [`sample_surface`]: `n` uniform by area; same errors.
+pub(crate) fn surface_samples(
+    mesh: &Mesh,
+    n: usize,
+    seed: u64,
+) -> Result<Vec<SurfaceSample>, MeshError> {
     mesh.validate()?;
     if mesh.faces.is_empty() {
         return Err(MeshError::invalid("no faces to sample"));
@@ -23,27 +54,22 @@ pub fn sample_surface(mesh: &Mesh, n: usize, seed: u64) -> Result<Mesh, MeshErro
     // (Areas are f64, so even faces spanning the whole f32 range have a finite area.)
     let choose = WeightedIndex::new(&areas)
         .map_err(|e| MeshError::invalid(format!("cannot sample the surface by area: {e}")))?;
-    let normals = mesh.face_normals();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let (points, point_normals) = (0..n)
+    Ok((0..n)
         .map(|_| {
-            let f = choose.sample(&mut rng);
-            (point_in_triangle(mesh.triangle(&mesh.faces[f]), &mut rng), normals[f])
+            let face = choose.sample(&mut rng);
+            SurfaceSample { face, weights: uniform_in_triangle(&mut rng) }
         })
-        .unzip();
-    Ok(Mesh { vertices: points, faces: Vec::new(), normals: Some(point_normals) })
+        .collect())
 }
 
-/// A uniform point in the triangle: with r1, r2 uniform in [0, 1) and s = sqrt(r1), the
-/// barycentric weights (1 - s, s (1 - r2), s r2) are uniform over the triangle (the square
+/// The barycentric weights of a uniform point in a triangle: with r1, r2 uniform in [0, 1)
+/// and s = sqrt(r1), (1 - s, s (1 - r2), s r2) are uniform over the triangle (the square
 /// root undoes the density growing linearly away from the first corner).
-fn point_in_triangle([a, b, c]: [[f32; 3]; 3], rng: &mut impl RngCore) -> [f32; 3] {
+fn uniform_in_triangle(rng: &mut impl RngCore) -> [f64; 3] {
     let s = rng.random::<f64>().sqrt();
     let r2 = rng.random::<f64>();
-    let (wa, wb, wc) = (1.0 - s, s * (1.0 - r2), s * r2);
-    std::array::from_fn(|k| {
-        (wa * f64::from(a[k]) + wb * f64::from(b[k]) + wc * f64::from(c[k])) as f32
-    })
+    [1.0 - s, s * (1.0 - r2), s * r2]
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 
 use super::assemble::Assembler;
 use super::text::{fields, lines, next_vec3};
-use super::{Mesh, MeshError, ReadLimits};
+use super::{Mesh, MeshError, ReadLimits, position_key};
 
 const FORMAT: &str = "STL";
 const HEADER: usize = 80;
@@ -62,8 +62,8 @@ impl<'a> Welder<'a> {
     }
 
     fn vertex(&mut self, p: [f32; 3]) -> Result<u32, MeshError> {
-        // Adding 0.0 turns -0.0 into 0.0, so that the two zeros weld; NaN is caught below.
-        let key = p.map(|c| (c + 0.0).to_bits());
+        // NaN is caught below.
+        let key = position_key(p);
         if let Some(&i) = self.index_of.get(&key) {
             return Ok(i);
         }

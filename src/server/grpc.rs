@@ -159,6 +159,7 @@ impl GrpcService {
             top_p: options.top_p,
             face_beam: options.face_beam.map(|n| n as usize),
             candidates: options.candidates.map(|n| n as usize),
+            fit_rounds: options.fit_rounds.map(|n| n as usize),
             seed: options.seed,
             format: None,
         };

@@ -34,6 +34,8 @@ pub struct AppState {
     pub max_body_bytes: usize,
     /// Candidates of a points request answered with a whole mesh that does not say.
     pub whole_mesh_candidates: usize,
+    /// Fitting rounds of a points request answered with a whole mesh that does not say.
+    pub whole_mesh_fit_rounds: usize,
     pub request_timeout: Duration,
     /// How images are prepared and sampled; `None` when the engine has no image model.
     pub image: Option<ImageDefaults>,
@@ -121,11 +123,12 @@ async fn reconstruct(
         let query = query_options::<ReconstructOptions>(&uri)?;
         let bytes = read_body(body, state.max_body_bytes).await?;
         let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
-        let whole_mesh_candidates = state.whole_mesh_candidates;
+        let (candidates, fit_rounds) = (state.whole_mesh_candidates, state.whole_mesh_fit_rounds);
         off_runtime(move || {
             let mut parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
             if streaming(&headers).is_none() {
-                parsed.decode.candidates.get_or_insert(whole_mesh_candidates);
+                parsed.decode.candidates.get_or_insert(candidates);
+                parsed.decode.fit_rounds.get_or_insert(fit_rounds);
             }
             let conditioning = prepare(&engine, &parsed.input, parsed.seed)?;
             Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })

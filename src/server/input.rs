@@ -8,7 +8,7 @@ use utoipa::{IntoParams, ToSchema};
 
 use crate::candidates::MAX_CANDIDATES;
 use crate::engine::DecodeOptions;
-use crate::mesh::{Format, Mesh, ReadLimits, read_mesh};
+use crate::mesh::{Format, MAX_FIT_ROUNDS, Mesh, ReadLimits, read_mesh};
 use crate::model::{DEFAULT_TEMPERATURE, MAX_FACE_BEAM, SamplingParams};
 
 use super::error::ApiError;
@@ -31,6 +31,10 @@ pub struct ReconstructOptions {
     /// configured, see `/v1/info`) for a whole mesh, 1 for a stream. With more than 1, every
     /// face arrives at the end.
     pub candidates: Option<usize>,
+    /// Rounds of moving the chosen mesh's corners to fit the input points (faces unchanged,
+    /// at most 200); 0 keeps them as decoded. Default: the server's setting for a whole mesh
+    /// (see `/v1/info`), 0 for a stream. Above 0, every face arrives at the end.
+    pub fit_rounds: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,
     /// glb (default), obj, ply or stl.
@@ -55,6 +59,7 @@ pub struct PointsBody {
     pub top_p: Option<f32>,
     pub face_beam: Option<usize>,
     pub candidates: Option<usize>,
+    pub fit_rounds: Option<usize>,
     pub seed: Option<u64>,
     pub format: Option<String>,
 }
@@ -94,6 +99,14 @@ impl ReconstructOptions {
             )));
         }
         decode.candidates = self.candidates;
+        if let Some(n) = self.fit_rounds
+            && n > MAX_FIT_ROUNDS
+        {
+            return Err(ApiError::invalid(format!(
+                "fit_rounds {n} must be at most {MAX_FIT_ROUNDS}"
+            )));
+        }
+        decode.fit_rounds = self.fit_rounds;
         Ok(ParsedRequest { input, decode, seed, format })
     }
 }
@@ -132,7 +145,7 @@ pub fn decode_options(
             "face_beam {beam} must be between 1 and {MAX_FACE_BEAM}"
         )));
     }
-    Ok(DecodeOptions { max_faces, sampling, face_beam, candidates: None })
+    Ok(DecodeOptions { max_faces, sampling, face_beam, ..DecodeOptions::default() })
 }
 
 /// The request's media type, lower case, without parameters ("" when absent).
@@ -239,6 +252,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         top_p: b.top_p,
         face_beam: b.face_beam,
         candidates: b.candidates,
+        fit_rounds: b.fit_rounds,
         seed: b.seed,
         format: b.format,
     };

@@ -56,6 +56,8 @@ pub struct ServeConfig {
     pub max_body_bytes: usize,
     /// Candidates of a points request answered with a whole mesh that does not say.
     pub whole_mesh_candidates: usize,
+    /// Fitting rounds of a points request answered with a whole mesh that does not say.
+    pub whole_mesh_fit_rounds: usize,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
     pub request_timeout: Duration,
     /// After SIGTERM: how long accepted requests may still take.
@@ -133,6 +135,7 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
         "engine": engine.config(),
         "defaults": {
             "candidates": { "whole_mesh": cfg.whole_mesh_candidates, "stream": 1 },
+            "fit_rounds": { "whole_mesh": cfg.whole_mesh_fit_rounds, "stream": 0 },
             "temperature": DEFAULT_TEMPERATURE,
         },
         "limits": {
@@ -181,6 +184,7 @@ pub async fn serve(
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
         whole_mesh_candidates: cfg.whole_mesh_candidates,
+        whole_mesh_fit_rounds: cfg.whole_mesh_fit_rounds,
         request_timeout: cfg.request_timeout,
         image: cfg.image.defaults(&engine),
         info: Arc::new(info_document(&engine, &cfg)),

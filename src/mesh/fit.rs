@@ -1,0 +1,266 @@
+//! Fitting a mesh's corners to the points it should pass through, keeping its faces.
+//!
+//! Why: a decoder places corners on its grid and, being small, often a grid step or two off
+//! the surface its input points describe (a box 2 steps short on one side); a reconstruction
+//! has those points at hand. Each round moves every corner by the mean pull on it of two
+//! nearest-neighbour matches, as Chamfer distance weighs them: points sampled on the surface
+//! towards their nearest input point (the surface lies where the points are), and each input
+//! point's nearest surface sample towards it (every point is covered). A sample pulls its
+//! face's corners by its barycentric weights. The pull is mostly along the input point's
+//! normal, towards its tangent plane: a thousand points lie about 0.05 apart on a shape of
+//! size 2, so pulling samples onto the points themselves would rather gather them around the
+//! points (and shrink the shape at its edges) than move them onto the surface.
+//!
+//! Corners move at most `max_shift` from where they started and stay within the bounds of
+//! the points and the mesh together: a pull towards a tangent plane must not carry a corner
+//! out past the shape. On the tuning shapes a larger `max_shift` always scored better
+//! (`docs/decisions.md`, "Fitting"), so the default lets corners go anywhere in the frame.
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+
+use super::sample::{SurfaceSample, surface_samples};
+use super::transform::{Mat3, cofactor, determinant, mat_vec};
+use super::{Mesh, MeshError, NORMAL_NEIGHBOURS, bounds, estimate_normals};
+
+/// The most rounds a server request may ask for: each costs about as much as judging a
+/// candidate.
+pub const MAX_FIT_ROUNDS: usize = 200;
+
+/// How hard a fit tries.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitOptions {
+    /// Rounds of matching and moving.
+    pub rounds: usize,
+    /// Surface samples per round.
+    pub samples: usize,
+    /// The furthest a corner may end up from where it started, in the mesh's units.
+    pub max_shift: f32,
+    /// The share of the mean pull a corner moves by in one round (1 moves all of it).
+    pub step: f32,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self { rounds: 40, samples: 4096, max_shift: 1.0, step: 1.0 }
+    }
+}
+
+/// The share of a pull that goes along the surface rather than towards its tangent plane:
+/// a little, so that corners do not drift freely along flat sides.
+const TANGENTIAL_SHARE: f32 = 0.1;
+
+/// `mesh` with its corners moved to fit the point cloud `cloud` (same faces, same vertex
+/// order); the cloud's normals are estimated when it has none (their sign does not matter).
+/// Errors as [`super::sample_surface`] for a mesh without area, or for an empty cloud.
+pub fn fit_to_points(
+    mesh: &Mesh,
+    cloud: &Mesh,
+    options: &FitOptions,
+    seed: u64,
+) -> Result<Mesh, MeshError> {
+    let points = &cloud.vertices;
+    if points.is_empty() {
+        return Err(MeshError::invalid("no points to fit the mesh to"));
+    }
+    let estimated;
+    let normals = match &cloud.normals {
+        Some(normals) => normals,
+        None => {
+            estimated = estimate_normals(points, NORMAL_NEIGHBOURS);
+            &estimated
+        }
+    };
+    let Some((lo, hi)) = bounds(&[points.as_slice(), &mesh.vertices].concat()) else {
+        return Err(MeshError::invalid("no corners to fit"));
+    };
+    let mut fitted = Mesh { normals: None, ..mesh.clone() };
+    for round in 0..options.rounds {
+        let samples = surface_samples(&fitted, options.samples, seed.wrapping_add(round as u64))?;
+        let pulls = Pulls::of(&fitted, &samples, points, normals)?;
+        for (v, shift) in pulls.shifts().into_iter().enumerate() {
+            let Some(shift) = shift else { continue };
+            let moved: [f32; 3] =
+                std::array::from_fn(|k| fitted.vertices[v][k] + options.step * shift[k]);
+            let near = within(mesh.vertices[v], moved, options.max_shift);
+            // Inside a box that holds the start, so this only brings the corner closer to it.
+            fitted.vertices[v] = std::array::from_fn(|k| near[k].clamp(lo[k], hi[k]));
+        }
+    }
+    Ok(fitted)
+}
+
+/// Every corner's least-squares problem in one round: the shift `s` that best moves the
+/// samples on its faces (each by its barycentric weight b of `s`) along their pulls,
+/// `A s = r`. Solved per corner rather than as a mean pull because a corner is pulled along
+/// different normals by its different faces: on a box's corner each side's samples decide
+/// one axis, where a mean would let the settled sides dilute the pull of the one still off.
+struct Pulls {
+    a: Vec<Mat3>,
+    r: Vec<[f32; 3]>,
+}
+
+impl Pulls {
+    fn of(
+        mesh: &Mesh,
+        samples: &[SurfaceSample],
+        points: &[[f32; 3]],
+        normals: &[[f32; 3]],
+    ) -> Result<Self, MeshError> {
+        let n = mesh.vertices.len();
+        let mut pulls = Pulls { a: vec![[[0.0; 3]; 3]; n], r: vec![[0.0; 3]; n] };
+        let positions: Vec<[f32; 3]> = samples.iter().map(|s| s.position(mesh)).collect();
+        // The two directions weigh alike, however many samples and points each has.
+        let per_sample = 1.0 / samples.len() as f32;
+        for (i, nearest) in nearest_in(points, &positions)?.into_iter().enumerate() {
+            let to = (points[nearest], normals[nearest]);
+            pulls.add(mesh, &samples[i], positions[i], to, per_sample);
+        }
+        let per_point = 1.0 / points.len() as f32;
+        for (j, nearest) in nearest_in(&positions, points)?.into_iter().enumerate() {
+            let to = (points[j], normals[j]);
+            pulls.add(mesh, &samples[nearest], positions[nearest], to, per_point);
+        }
+        Ok(pulls)
+    }
+
+    /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its unit
+    /// normal): onto the point's tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
+    /// way, i.e. by `M d` with `M = t I + (1 - t) n n^T` and `d = to - from`.
+    fn add(
+        &mut self,
+        mesh: &Mesh,
+        sample: &SurfaceSample,
+        from: [f32; 3],
+        (to, normal): ([f32; 3], [f32; 3]),
+        w: f32,
+    ) {
+        let t = TANGENTIAL_SHARE;
+        let m: Mat3 = std::array::from_fn(|i| {
+            std::array::from_fn(|j| {
+                (1.0 - t) * normal[i] * normal[j] + if i == j { t } else { 0.0 }
+            })
+        });
+        let pull = mat_vec(&m, std::array::from_fn(|k| to[k] - from[k]));
+        for (corner, &bary) in mesh.faces[sample.face].iter().zip(&sample.weights) {
+            let (v, b) = (*corner as usize, w * bary as f32);
+            for ((r, a), (pull, m)) in
+                self.r[v].iter_mut().zip(&mut self.a[v]).zip(pull.iter().zip(&m))
+            {
+                *r += b * pull;
+                for (a, m) in a.iter_mut().zip(m) {
+                    *a += b * m;
+                }
+            }
+        }
+    }
+
+    /// Each corner's shift; `None` for a corner nothing pulled.
+    fn shifts(&self) -> Vec<Option<[f32; 3]>> {
+        self.a.iter().zip(&self.r).map(|(a, r)| solve(a, *r)).collect()
+    }
+}
+
+/// `x` with `a x = r` for a symmetric positive semi-definite `a`; `None` when `a` is 0 or
+/// singular.
+fn solve(a: &Mat3, r: [f32; 3]) -> Option<[f32; 3]> {
+    // Scaled to a unit trace first: the entries are sums of tiny weights.
+    let trace = a[0][0] + a[1][1] + a[2][2];
+    if trace <= 0.0 {
+        return None;
+    }
+    let a = a.map(|row| row.map(|x| x / trace));
+    let det = determinant(&a);
+    // M's smallest eigenvalue is t, so a sum of them has a determinant of at least t^3 / 27
+    // at unit trace; far below that, rounding has made it singular.
+    if det <= 1e-9 {
+        return None;
+    }
+    // a is symmetric, so its cofactor matrix is the transpose of its adjugate as well.
+    let x = mat_vec(&cofactor(&a), r);
+    Some(x.map(|c| c / (det * trace)))
+}
+
+/// For each of `queries`, the index of its nearest point in `set`.
+fn nearest_in(set: &[[f32; 3]], queries: &[[f32; 3]]) -> Result<Vec<usize>, MeshError> {
+    let tree = ImmutableKdTree::<f32, 3>::new_from_slice(set)
+        .map_err(|e| MeshError::invalid(format!("too many points to fit to: {e}")))?;
+    let nearest = tree.query_batch(queries).nearest_one::<SquaredEuclidean<f32>>().execute();
+    Ok(nearest.iter().map(|n| n.item as usize).collect())
+}
+
+/// `p` moved back towards `origin` until it is at most `radius` away.
+fn within(origin: [f32; 3], p: [f32; 3], radius: f32) -> [f32; 3] {
+    let d: [f32; 3] = std::array::from_fn(|k| p[k] - origin[k]);
+    let length = d.iter().map(|c| c * c).sum::<f32>().sqrt();
+    if length <= radius {
+        return p;
+    }
+    std::array::from_fn(|k| origin[k] + d[k] * radius / length)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+    use crate::mesh::sample_surface;
+    use crate::metrics::point_set_distances;
+
+    /// Chamfer distance between two surfaces, densely sampled.
+    fn chamfer(a: &Mesh, b: &Mesh) -> f64 {
+        let dense = |m: &Mesh, seed| sample_surface(m, 20_000, seed).unwrap().vertices;
+        point_set_distances(&dense(a, 3), &dense(b, 4)).chamfer
+    }
+
+    #[test]
+    fn a_box_a_little_off_fits_its_points() {
+        let truth = cuboid([1.0, 0.6, 0.8]);
+        let cloud = sample_surface(&truth, 1024, 1).unwrap();
+        let off = cuboid([0.94, 0.65, 0.8]).translated([0.02, 0.0, -0.01]);
+        let fitted = fit_to_points(&off, &cloud, &FitOptions::default(), 0).unwrap();
+        assert_eq!(fitted.faces, off.faces);
+        for (v, w) in fitted.vertices.iter().zip(&truth.vertices) {
+            for k in 0..3 {
+                assert!((v[k] - w[k]).abs() < 0.01, "corner {v:?}, should be {w:?}");
+            }
+        }
+        let (before, after) = (chamfer(&off, &truth), chamfer(&fitted, &truth));
+        assert!(after < 0.5 * before, "Chamfer distance {before} before, {after} after");
+    }
+
+    #[test]
+    fn corners_move_at_most_max_shift() {
+        let cloud = sample_surface(&cuboid([2.0; 3]), 1024, 1).unwrap();
+        let small = cuboid([0.5; 3]);
+        let options = FitOptions { max_shift: 0.05, ..FitOptions::default() };
+        let fitted = fit_to_points(&small, &cloud, &options, 0).unwrap();
+        for (v, w) in fitted.vertices.iter().zip(&small.vertices) {
+            let d = (0..3).map(|k| (v[k] - w[k]).powi(2)).sum::<f32>().sqrt();
+            assert!(d <= 0.05 + 1e-6, "moved {d}");
+            assert!(d > 0.04, "moved only {d} towards points 0.75 away");
+        }
+    }
+
+    #[test]
+    fn corners_stay_within_the_points_and_the_mesh() {
+        // A long thin slab across a small box's points: pulled onto the box's side planes,
+        // its ends would slide out along them.
+        let cloud = sample_surface(&cuboid([0.4; 3]), 1024, 1).unwrap();
+        let slab = cuboid([1.6, 0.1, 0.1]).translated([0.0, 0.5, 0.0]);
+        let fitted = fit_to_points(&slab, &cloud, &FitOptions::default(), 0).unwrap();
+        let (lo, hi) =
+            crate::mesh::bounds(&[cloud.vertices.as_slice(), &slab.vertices].concat()).unwrap();
+        for v in &fitted.vertices {
+            assert!((0..3).all(|k| lo[k] <= v[k] && v[k] <= hi[k]), "{v:?} out of {lo:?}..{hi:?}");
+        }
+    }
+
+    #[test]
+    fn no_points_or_no_area_is_an_error() {
+        let m = cuboid([1.0; 3]);
+        let options = FitOptions::default();
+        assert!(fit_to_points(&m, &Mesh::default(), &options, 0).is_err());
+        let flat = Mesh::new(vec![[0.0; 3]; 3], vec![[0, 1, 2]]);
+        let one_point = Mesh::new(vec![[0.0; 3]], vec![]);
+        assert!(fit_to_points(&flat, &one_point, &options, 0).is_err());
+    }
+}
