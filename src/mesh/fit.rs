@@ -51,13 +51,15 @@ const TANGENTIAL_SHARE: f32 = 0.1;
 
 /// `mesh` with its corners moved to fit the point cloud `cloud` (same faces, same vertex
 /// order); the cloud's normals are estimated when it has none (their sign does not matter).
-/// Errors as [`super::sample_surface`] for a mesh without area, or for an empty cloud.
+/// Errors as [`super::sample_surface`] for a mesh without area, and for an empty or invalid
+/// cloud (see [`Mesh::validate`]).
 pub fn fit_to_points(
     mesh: &Mesh,
     cloud: &Mesh,
     options: &FitOptions,
     seed: u64,
 ) -> Result<Mesh, MeshError> {
+    cloud.validate()?;
     let points = &cloud.vertices;
     if points.is_empty() {
         return Err(MeshError::invalid("no points to fit the mesh to"));
@@ -123,8 +125,9 @@ impl Pulls {
         Ok(pulls)
     }
 
-    /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its unit
-    /// normal): onto the point's tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
+    /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its
+    /// normal, of any length; a zero normal pulls straight at the point): onto the point's
+    /// tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
     /// way, i.e. by `M d` with `M = t I + (1 - t) n n^T` and `d = to - from`.
     fn add(
         &mut self,
@@ -135,6 +138,8 @@ impl Pulls {
         w: f32,
     ) {
         let t = TANGENTIAL_SHARE;
+        let length = normal.iter().map(|c| c * c).sum::<f32>().sqrt();
+        let normal = if length > 0.0 { normal.map(|c| c / length) } else { normal };
         let m: Mat3 = std::array::from_fn(|i| {
             std::array::from_fn(|j| {
                 (1.0 - t) * normal[i] * normal[j] + if i == j { t } else { 0.0 }
@@ -251,6 +256,32 @@ mod tests {
             crate::mesh::bounds(&[cloud.vertices.as_slice(), &slab.vertices].concat()).unwrap();
         for v in &fitted.vertices {
             assert!((0..3).all(|k| lo[k] <= v[k] && v[k] <= hi[k]), "{v:?} out of {lo:?}..{hi:?}");
+        }
+    }
+
+    proptest::proptest! {
+        /// Any mesh, any points and normals: no panic, and every corner finite, within bounds.
+        #[test]
+        fn any_input_fits_without_panic_inside_the_bounds(
+            corners in proptest::collection::vec(proptest::array::uniform3(-1.0f32..1.0), 3..12),
+            faces in proptest::collection::vec(proptest::array::uniform3(0u32..12), 1..16),
+            points in proptest::collection::vec(proptest::array::uniform3(-2.0f32..2.0), 1..40),
+            normals in proptest::collection::vec(proptest::array::uniform3(-1e3f32..1e3), 40),
+        ) {
+            let n = corners.len() as u32;
+            let faces = faces.into_iter().map(|f| f.map(|i| i % n)).collect();
+            let mesh = Mesh::new(corners, faces);
+            let normals = normals[..points.len()].to_vec();
+            let cloud = Mesh { vertices: points, faces: vec![], normals: Some(normals) };
+            let options = FitOptions { rounds: 3, samples: 64, ..FitOptions::default() };
+            if let Ok(fitted) = fit_to_points(&mesh, &cloud, &options, 0) {
+                let all = [cloud.vertices.as_slice(), &mesh.vertices].concat();
+                let (lo, hi) = crate::mesh::bounds(&all).unwrap();
+                proptest::prop_assert_eq!(&fitted.faces, &mesh.faces);
+                for v in &fitted.vertices {
+                    proptest::prop_assert!((0..3).all(|k| lo[k] <= v[k] && v[k] <= hi[k]));
+                }
+            }
         }
     }
 
