@@ -2,8 +2,8 @@
 //!
 //! Why: a decoder places corners on its grid and, being small, often a grid step or two off
 //! the surface its input points describe (a box 2 steps short on one side); a reconstruction
-//! has those points at hand. Each round moves every corner by the mean pull on it of two
-//! nearest-neighbour matches, as Chamfer distance weighs them: points sampled on the surface
+//! has those points at hand. Each round moves every corner by the least-squares shift of the
+//! pulls on it from two nearest-neighbour matches, as Chamfer distance weighs them: points sampled on the surface
 //! towards their nearest input point (the surface lies where the points are), and each input
 //! point's nearest surface sample towards it (every point is covered). A sample pulls its
 //! face's corners by its barycentric weights. The pull is mostly along the input point's
@@ -35,7 +35,7 @@ pub struct FitOptions {
     pub samples: usize,
     /// The furthest a corner may end up from where it started, in the mesh's units.
     pub max_shift: f32,
-    /// The share of the mean pull a corner moves by in one round (1 moves all of it).
+    /// The share of its least-squares shift a corner moves by in one round (1: all of it).
     pub step: f32,
 }
 
