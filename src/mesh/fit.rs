@@ -64,21 +64,14 @@ pub fn fit_to_points(
     if points.is_empty() {
         return Err(MeshError::invalid("no points to fit the mesh to"));
     }
-    let estimated;
-    let normals = match &cloud.normals {
-        Some(normals) => normals,
-        None => {
-            estimated = estimate_normals(points, NORMAL_NEIGHBOURS);
-            &estimated
-        }
-    };
+    let target = Target::of(cloud)?;
     let Some((lo, hi)) = bounds(&[points.as_slice(), &mesh.vertices].concat()) else {
         return Err(MeshError::invalid("no corners to fit"));
     };
     let mut fitted = Mesh { normals: None, ..mesh.clone() };
     for round in 0..options.rounds {
         let samples = surface_samples(&fitted, options.samples, seed.wrapping_add(round as u64))?;
-        let pulls = Pulls::of(&fitted, &samples, points, normals)?;
+        let pulls = Pulls::of(&fitted, &samples, &target)?;
         for (v, shift) in pulls.shifts().into_iter().enumerate() {
             let Some(shift) = shift else { continue };
             let moved: [f32; 3] =
@@ -89,6 +82,31 @@ pub fn fit_to_points(
         }
     }
     Ok(fitted)
+}
+
+/// What the corners are fitted to, prepared once for every round: the points, their unit
+/// normals (estimated when the cloud has none; zero where a given one is) and their k-d tree.
+struct Target<'a> {
+    points: &'a [[f32; 3]],
+    normals: Vec<[f32; 3]>,
+    tree: ImmutableKdTree<f32, 3>,
+}
+
+impl<'a> Target<'a> {
+    fn of(cloud: &'a Mesh) -> Result<Self, MeshError> {
+        let points = cloud.vertices.as_slice();
+        let normals = match &cloud.normals {
+            Some(normals) => normals.iter().map(|&n| unit(n)).collect(),
+            None => estimate_normals(points, NORMAL_NEIGHBOURS).into_iter().map(unit).collect(),
+        };
+        Ok(Self { points, normals, tree: tree_of(points)? })
+    }
+}
+
+/// `n` scaled to length 1; 0 stays 0.
+fn unit(n: [f32; 3]) -> [f32; 3] {
+    let length = n.iter().map(|c| c * c).sum::<f32>().sqrt();
+    if length > 0.0 { n.map(|c| c / length) } else { n }
 }
 
 /// Every corner's least-squares problem in one round: the shift `s` that best moves the
@@ -102,32 +120,28 @@ struct Pulls {
 }
 
 impl Pulls {
-    fn of(
-        mesh: &Mesh,
-        samples: &[SurfaceSample],
-        points: &[[f32; 3]],
-        normals: &[[f32; 3]],
-    ) -> Result<Self, MeshError> {
+    fn of(mesh: &Mesh, samples: &[SurfaceSample], target: &Target) -> Result<Self, MeshError> {
+        let (points, normals) = (target.points, &target.normals);
         let n = mesh.vertices.len();
         let mut pulls = Pulls { a: vec![[[0.0; 3]; 3]; n], r: vec![[0.0; 3]; n] };
         let positions: Vec<[f32; 3]> = samples.iter().map(|s| s.position(mesh)).collect();
         // The two directions weigh alike, however many samples and points each has.
         let per_sample = 1.0 / samples.len() as f32;
-        for (i, nearest) in nearest_in(points, &positions)?.into_iter().enumerate() {
+        for (i, nearest) in nearest_in(&target.tree, &positions).into_iter().enumerate() {
             let to = (points[nearest], normals[nearest]);
             pulls.add(mesh, &samples[i], positions[i], to, per_sample);
         }
         let per_point = 1.0 / points.len() as f32;
-        for (j, nearest) in nearest_in(&positions, points)?.into_iter().enumerate() {
+        let sample_tree = tree_of(&positions)?;
+        for (j, nearest) in nearest_in(&sample_tree, points).into_iter().enumerate() {
             let to = (points[j], normals[j]);
             pulls.add(mesh, &samples[nearest], positions[nearest], to, per_point);
         }
         Ok(pulls)
     }
 
-    /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its
-    /// normal, of any length; a zero normal pulls straight at the point): onto the point's
-    /// tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
+    /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its unit
+    /// normal; a zero normal pulls straight at the point): onto the point's tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
     /// way, i.e. by `M d` with `M = t I + (1 - t) n n^T` and `d = to - from`.
     fn add(
         &mut self,
@@ -138,8 +152,6 @@ impl Pulls {
         w: f32,
     ) {
         let t = TANGENTIAL_SHARE;
-        let length = normal.iter().map(|c| c * c).sum::<f32>().sqrt();
-        let normal = if length > 0.0 { normal.map(|c| c / length) } else { normal };
         let m: Mat3 = std::array::from_fn(|i| {
             std::array::from_fn(|j| {
                 (1.0 - t) * normal[i] * normal[j] + if i == j { t } else { 0.0 }
@@ -185,12 +197,15 @@ fn solve(a: &Mat3, r: [f32; 3]) -> Option<[f32; 3]> {
     Some(x.map(|c| c / (det * trace)))
 }
 
-/// For each of `queries`, the index of its nearest point in `set`.
-fn nearest_in(set: &[[f32; 3]], queries: &[[f32; 3]]) -> Result<Vec<usize>, MeshError> {
-    let tree = ImmutableKdTree::<f32, 3>::new_from_slice(set)
-        .map_err(|e| MeshError::invalid(format!("too many points to fit to: {e}")))?;
+fn tree_of(set: &[[f32; 3]]) -> Result<ImmutableKdTree<f32, 3>, MeshError> {
+    ImmutableKdTree::new_from_slice(set)
+        .map_err(|e| MeshError::invalid(format!("too many points to fit to: {e}")))
+}
+
+/// For each of `queries`, the index of its nearest point in `tree`.
+fn nearest_in(tree: &ImmutableKdTree<f32, 3>, queries: &[[f32; 3]]) -> Vec<usize> {
     let nearest = tree.query_batch(queries).nearest_one::<SquaredEuclidean<f32>>().execute();
-    Ok(nearest.iter().map(|n| n.item as usize).collect())
+    nearest.iter().map(|n| n.item as usize).collect()
 }
 
 /// `p` moved back towards `origin` until it is at most `radius` away.
