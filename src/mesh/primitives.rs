@@ -34,6 +34,11 @@ pub fn cuboid(size: [f32; 3]) -> Mesh {
 
 /// A frustum along z from `-height/2` to `height/2` with `segments` sides: a prism when the
 /// radii are equal, a cone or pyramid when `top_radius` is 0 (the apex is then one vertex).
+///
+/// Caps are flat n-gons split as a fan from their first corner, with no centre vertex (an
+/// editor's n-gon cap): a vertex in the middle of a flat cap leaves no trace in the surface,
+/// so a model could only guess where it is, and a shape with one could never be rebuilt face
+/// for face from its points.
 pub fn frustum(bottom_radius: f32, top_radius: f32, height: f32, segments: u32) -> Mesh {
     let n = segments.max(3);
     let ring = |r: f32, z: f32| -> Vec<[f32; 3]> {
@@ -46,21 +51,17 @@ pub fn frustum(bottom_radius: f32, top_radius: f32, height: f32, segments: u32) 
     };
     let (zb, zt) = (-height / 2.0, height / 2.0);
     let mut vertices = ring(bottom_radius, zb);
-    let mut faces = Vec::new();
-    let bottom_center = push(&mut vertices, [0.0, 0.0, zb]);
-    for i in 0..n {
-        faces.push([bottom_center, (i + 1) % n, i]);
-    }
+    // The bottom cap faces down, so its fan turns clockwise seen from above.
+    let mut faces: Vec<[u32; 3]> = (1..n - 1).map(|i| [0, i + 1, i]).collect();
     if top_radius > 0.0 {
         let top = vertices.len() as u32;
         vertices.extend(ring(top_radius, zt));
-        let top_center = push(&mut vertices, [0.0, 0.0, zt]);
         for i in 0..n {
             let j = (i + 1) % n;
             faces.push([i, j, top + j]);
             faces.push([i, top + j, top + i]);
-            faces.push([top_center, top + i, top + j]);
         }
+        faces.extend((1..n - 1).map(|i| [top, top + i, top + i + 1]));
     } else {
         let apex = push(&mut vertices, [0.0, 0.0, zt]);
         for i in 0..n {
@@ -236,12 +237,13 @@ mod tests {
         // An L: a 2 x 2 square without its 1 x 1 top-right quarter, 0.5 high.
         let l_shape = [[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [1.0, 1.0], [1.0, 2.0], [0.0, 2.0]];
         let l_clockwise: Vec<[f32; 2]> = l_shape.iter().rev().copied().collect();
-        let cases: [(Mesh, f64, f64); 7] = [
+        let cases: [(Mesh, f64, f64); 8] = [
             (extrusion(&l_shape, 0.5).unwrap(), 1.5, 1e-6),
             (extrusion(&l_clockwise, 0.5).unwrap(), 1.5, 1e-6),
             (cuboid([2.0, 3.0, 4.0]), 24.0, 1e-9),
             (frustum(1.0, 1.0, 2.0, 4), 4.0, 1e-5), // a square prism of side sqrt(2)
             (frustum(1.0, 0.0, 3.0, 4), 2.0, 1e-5), // a square pyramid: base 2, height 3
+            (frustum(1.0, 0.0, 4.0, 3), 3f64.sqrt(), 1e-5), // base 3 sqrt(3) / 4, height 4
             (uv_sphere(1.0, 64, 32), 4.0 / 3.0 * std::f64::consts::PI, 0.02),
             (torus(2.0, 0.5, 64, 32), 2.0 * std::f64::consts::PI.powi(2) * 2.0 * 0.25, 0.02),
         ];
@@ -269,6 +271,23 @@ mod tests {
                     assert!(y.abs() > 1e-6 || y == 0.0, "n = {n}: y = {y}");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn frustum_caps_have_no_centre_vertex() {
+        for n in 3..=12 {
+            let prism = frustum(0.5, 0.3, 1.0, n);
+            assert_eq!(
+                (prism.vertices.len(), prism.faces.len()),
+                (2 * n as usize, 4 * n as usize - 4)
+            );
+            let pyramid = frustum(0.5, 0.0, 1.0, n);
+            assert_eq!(
+                (pyramid.vertices.len(), pyramid.faces.len()),
+                (n as usize + 1, 2 * n as usize - 2)
+            );
+            assert!(is_closed_and_oriented(&prism) && is_closed_and_oriented(&pyramid), "n = {n}");
         }
     }
 
