@@ -20,7 +20,7 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use super::sample::{SurfaceSample, surface_samples};
 use super::transform::{Mat3, cofactor, determinant, mat_vec};
-use super::{Mesh, MeshError, NORMAL_NEIGHBOURS, bounds, estimate_normals};
+use super::{Mesh, MeshError, NORMAL_NEIGHBOURS, bounds, estimate_normals, normalized};
 
 /// The most rounds a server request may ask for: each costs about as much as judging a
 /// candidate.
@@ -96,17 +96,13 @@ impl<'a> Target<'a> {
     fn of(cloud: &'a Mesh) -> Result<Self, MeshError> {
         let points = cloud.vertices.as_slice();
         let normals = match &cloud.normals {
-            Some(normals) => normals.iter().map(|&n| unit(n)).collect(),
-            None => estimate_normals(points, NORMAL_NEIGHBOURS).into_iter().map(unit).collect(),
+            Some(normals) => normals.iter().map(|&n| normalized(n)).collect(),
+            None => {
+                estimate_normals(points, NORMAL_NEIGHBOURS).into_iter().map(normalized).collect()
+            }
         };
         Ok(Self { points, normals, tree: tree_of(points)? })
     }
-}
-
-/// `n` scaled to length 1; 0 stays 0.
-fn unit(n: [f32; 3]) -> [f32; 3] {
-    let length = n.iter().map(|c| c * c).sum::<f32>().sqrt();
-    if length > 0.0 { n.map(|c| c / length) } else { n }
 }
 
 /// Every corner's least-squares problem in one round: the shift `s` that best moves the
@@ -141,8 +137,9 @@ impl Pulls {
     }
 
     /// `sample`, at `from`, is pulled with weight `w` towards the point `to` (with its unit
-    /// normal; a zero normal pulls straight at the point): onto the point's tangent plane, and [`TANGENTIAL_SHARE`] of the rest of the
-    /// way, i.e. by `M d` with `M = t I + (1 - t) n n^T` and `d = to - from`.
+    /// normal; a zero normal pulls straight at the point): onto the point's tangent plane, and
+    /// [`TANGENTIAL_SHARE`] of the rest of the way, i.e. by `M d` with
+    /// `M = t I + (1 - t) n n^T` and `d = to - from`.
     fn add(
         &mut self,
         mesh: &Mesh,
