@@ -1,7 +1,7 @@
 //! `meshstream-train`: train FACE autoencoders and image-to-latent diffusion models, export
 //! their weights, plot their curves.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
@@ -143,6 +143,10 @@ struct AeArgs {
     /// Fraction of samples drawn from the procedural shape generator.
     #[arg(long, default_value_t = 0.5)]
     procedural_ratio: f32,
+    /// How often procedural kinds are drawn relative to the others, as KIND=WEIGHT pairs,
+    /// e.g. "box=3,prism=3" (a kind not listed has weight 1; 0 leaves it out).
+    #[arg(long, value_parser = parse_kind_weight, value_delimiter = ',')]
+    procedural_weights: Vec<(ShapeKind, u32)>,
     /// Curriculum as STEP:MAX_FACES pairs, e.g. "0:100,3000:400".
     #[arg(long, default_value = "0:100,3000:400")]
     curriculum: String,
@@ -515,6 +519,7 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
             },
             faces_per_batch: args.batch_faces,
             procedural_ratio: args.procedural_ratio,
+            procedural_weights: procedural_weights(&args.procedural_weights)?,
             curriculum: parse_curriculum(&args.curriculum)?,
             max_faces: model.max_faces,
             seed: args.seed,
@@ -542,6 +547,27 @@ fn parse_share(text: &str) -> anyhow::Result<f32> {
         bail!("{value} is not between 0 and 1");
     }
     Ok(value)
+}
+
+/// The weights as a map, checked now rather than when the first batch is drawn.
+fn procedural_weights(pairs: &[(ShapeKind, u32)]) -> anyhow::Result<BTreeMap<ShapeKind, u32>> {
+    let weights = pairs.iter().copied().collect();
+    ProceduralShapes::weighted(0, 1, &weights).context("--procedural-weights")?;
+    Ok(weights)
+}
+
+fn parse_kind_weight(pair: &str) -> Result<(ShapeKind, u32), String> {
+    let (kind, weight) =
+        pair.split_once('=').ok_or_else(|| format!("'{pair}' is not KIND=WEIGHT"))?;
+    let kind = ShapeKind::from_str(kind.trim(), true).map_err(|_| {
+        let kinds: Vec<String> = ShapeKind::ALL
+            .iter()
+            .filter_map(|k| k.to_possible_value().map(|v| v.get_name().to_string()))
+            .collect();
+        format!("unknown shape kind '{kind}' (kinds: {})", kinds.join(", "))
+    })?;
+    let weight = weight.trim().parse().map_err(|_| format!("weight in '{pair}' is not a count"))?;
+    Ok((kind, weight))
 }
 
 fn parse_curriculum(text: &str) -> anyhow::Result<Vec<CurriculumStage>> {

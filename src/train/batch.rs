@@ -2,6 +2,7 @@
 //! resumed run sees exactly the data it would have seen, and batches can be made ahead on a
 //! thread of their own while the model trains.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
@@ -16,7 +17,7 @@ use crate::tokenize::{FaceToken, Quantizer, tokenize};
 use super::TrainError;
 use super::augment::{AugmentConfig, augment};
 use super::dataset::FolderData;
-use super::procedural::ProceduralShapes;
+use super::procedural::{ProceduralShapes, ShapeKind};
 
 /// One mesh ready for the model: its face tokens and the encoder's input.
 #[derive(Debug, Clone, PartialEq)]
@@ -84,6 +85,9 @@ pub struct BatchConfig {
     pub faces_per_batch: usize,
     /// Fraction of samples drawn from the procedural generator rather than the folder.
     pub procedural_ratio: f32,
+    /// How often each procedural kind is drawn relative to the others (1 if not listed).
+    #[serde(default)]
+    pub procedural_weights: BTreeMap<ShapeKind, u32>,
     /// Sorted by `from_step`; the first stage applies before its step too.
     pub curriculum: Vec<CurriculumStage>,
     /// The model's face limit: the last stage never exceeds it.
@@ -170,7 +174,9 @@ impl BatchSource {
             .folder
             .as_ref()
             .map_or(0, |f| self.by_faces.partition_point(|&i| f.meshes[i].faces <= max_faces));
-        let mut procedural = ProceduralShapes::new(rng.random(), max_faces);
+        let mut procedural =
+            ProceduralShapes::weighted(rng.random(), max_faces, &self.cfg.procedural_weights)
+                .map_err(|e| TrainError::Config(e.to_string()))?;
         let mut samples = Vec::new();
         let mut positions = 0;
         // Bounded attempts: augmentation can push a mesh over the limit, so some draws fail.
@@ -255,6 +261,7 @@ mod tests {
             },
             faces_per_batch,
             procedural_ratio: 1.0,
+            procedural_weights: BTreeMap::new(),
             curriculum: vec![
                 CurriculumStage { from_step: 0, max_faces: 40 },
                 CurriculumStage { from_step: 10, max_faces: 400 },
@@ -294,6 +301,15 @@ mod tests {
                 assert!(s.points.iter().flatten().all(|c| c.abs() <= 1.0 + 1e-5));
             }
         }
+    }
+
+    #[test]
+    fn procedural_weights_reach_the_batches() {
+        let only_wedges = ShapeKind::ALL.iter().map(|&k| (k, u32::from(k == ShapeKind::Wedge)));
+        let cfg = BatchConfig { procedural_weights: only_wedges.collect(), ..config(300) };
+        let batch = BatchSource::new(None, cfg).batch(2).unwrap();
+        assert!(!batch.samples.is_empty());
+        assert!(batch.samples.iter().all(|s| s.name == "Wedge"));
     }
 
     #[test]

@@ -4,6 +4,8 @@
 //! Shapes come centred near the origin in a canonical pose with random proportions; the
 //! training pipeline's augmentation (rotation, flips, per-axis scale) varies them further.
 
+use std::collections::BTreeMap;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -12,8 +14,21 @@ use crate::mesh::primitives::{cuboid, extrusion, frustum, torus, uv_sphere};
 use crate::mesh::transform::rotation;
 use crate::tokenize::canonical_triangulation;
 
-/// What kind of shape a sample is, for logs and for stratified evaluation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+/// What kind of shape a sample is, for logs, for stratified evaluation and for weighting the
+/// training mix.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
 pub enum ShapeKind {
     Box,
     Prism,
@@ -89,6 +104,41 @@ impl ProceduralShapes {
         let kinds = if kinds.is_empty() { ShapeKind::ALL.to_vec() } else { kinds.to_vec() };
         Self { rng: ChaCha8Rng::seed_from_u64(seed), max_faces: max_faces.max(4), kinds }
     }
+
+    /// Shapes of every kind, each drawn in proportion to its weight (1 for a kind not listed,
+    /// 0 to leave a kind out, at most [`MAX_KIND_WEIGHT`]). Without weights this is
+    /// [`Self::new`], draw for draw.
+    pub fn weighted(
+        seed: u64,
+        max_faces: usize,
+        weights: &BTreeMap<ShapeKind, u32>,
+    ) -> Result<Self, KindWeightsError> {
+        if let Some((&kind, &weight)) = weights.iter().find(|(_, w)| **w > MAX_KIND_WEIGHT) {
+            return Err(KindWeightsError::TooLarge { kind, weight });
+        }
+        // A kind listed w times in the uniform draw is drawn w times as often; this keeps the
+        // unweighted stream (and so the held-aside shapes) exactly as it was.
+        let kinds: Vec<ShapeKind> = ShapeKind::ALL
+            .iter()
+            .flat_map(|&kind| std::iter::repeat_n(kind, *weights.get(&kind).unwrap_or(&1) as usize))
+            .collect();
+        if kinds.is_empty() {
+            return Err(KindWeightsError::AllZero);
+        }
+        Ok(Self::of_kinds(seed, max_faces, &kinds))
+    }
+}
+
+/// The largest weight of one kind: the mix is drawn from a list with a kind repeated as often
+/// as its weight, so weights are kept to ratios a mix needs.
+pub const MAX_KIND_WEIGHT: u32 = 1000;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum KindWeightsError {
+    #[error("every procedural shape kind has weight 0, so there is nothing to draw")]
+    AllZero,
+    #[error("{kind:?} has weight {weight}; at most {MAX_KIND_WEIGHT}")]
+    TooLarge { kind: ShapeKind, weight: u32 },
 }
 
 impl Iterator for ProceduralShapes {
@@ -404,6 +454,38 @@ mod tests {
             boxes += usize::from(kind == ShapeKind::Box);
         }
         assert!(boxes > 0);
+    }
+
+    #[test]
+    fn weights_change_the_mix_and_none_keeps_the_stream() {
+        let plain: Vec<_> = ProceduralShapes::new(9, 400).take(50).collect();
+        let unweighted: Vec<_> =
+            ProceduralShapes::weighted(9, 400, &BTreeMap::new()).unwrap().take(50).collect();
+        assert_eq!(plain, unweighted);
+
+        let boxes_only: BTreeMap<_, _> =
+            ShapeKind::ALL.iter().map(|&k| (k, u32::from(k == ShapeKind::Box))).collect();
+        let shapes = ProceduralShapes::weighted(9, 400, &boxes_only).unwrap();
+        assert!(shapes.take(30).all(|(kind, _)| kind == ShapeKind::Box));
+
+        let more_boxes = BTreeMap::from([(ShapeKind::Box, 19)]);
+        let boxes = ProceduralShapes::weighted(9, 400, &more_boxes)
+            .unwrap()
+            .take(2000)
+            .filter(|(kind, _)| *kind == ShapeKind::Box)
+            .count();
+        // Box is 19 of 37 draws: about 1,027 of 2,000.
+        assert!((900..1150).contains(&boxes), "{boxes} boxes");
+    }
+
+    #[test]
+    fn weights_that_leave_nothing_or_are_too_large_are_errors() {
+        let none: BTreeMap<_, _> = ShapeKind::ALL.iter().map(|&k| (k, 0)).collect();
+        let result = ProceduralShapes::weighted(1, 400, &none);
+        assert_eq!(result.err(), Some(KindWeightsError::AllZero));
+        let huge = BTreeMap::from([(ShapeKind::Cone, u32::MAX)]);
+        let result = ProceduralShapes::weighted(1, 400, &huge);
+        assert!(matches!(result, Err(KindWeightsError::TooLarge { kind: ShapeKind::Cone, .. })));
     }
 
     #[test]
