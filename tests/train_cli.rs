@@ -78,11 +78,20 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
     // (It also turns every sample by a quarter turn, which its train.json records.)
     let frozen = tmp.path().join("frozen");
-    let extra = ["--freeze-encoder", "--any-angle-share", "0"];
+    // (And weights its procedural mix, which train.json records too.)
+    let extra = [
+        "--freeze-encoder",
+        "--any-angle-share",
+        "0",
+        "--procedural-weights",
+        "box=3,l-extrusion=0",
+    ];
     run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &extra);
     let config: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(frozen.join("train.json")).unwrap()).unwrap();
     assert_eq!(config["batch"]["sample"]["augment"]["any_angle_share"], 0.0);
+    let weights = &config["batch"]["procedural_weights"];
+    assert_eq!((&weights["Box"], &weights["LExtrusion"]), (&3.into(), &0.into()));
     let weights = |dir: &Path| {
         candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
             .unwrap()
@@ -132,6 +141,32 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     }
 
     assert_plots(&resumed, &tmp.path().join("curves.png"));
+    assert_scores_meshes(&model, tmp.path());
+}
+
+/// `meshstream-train loss` scores every mesh it can read and reports the others.
+fn assert_scores_meshes(model: &Path, tmp: &Path) {
+    let shapes = tmp.join("shapes");
+    let status = train_bin()
+        .args(["shapes", "-o", shapes.to_str().unwrap(), "-n", "3", "--max-faces", "60"])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    std::fs::write(shapes.join("broken.obj"), "f 1 2 3\n").unwrap();
+    let output = train_bin()
+        .args(["loss", "--json", "--model", model.to_str().unwrap(), shapes.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let meshes = report["meshes"].as_array().unwrap();
+    assert_eq!(meshes.len(), 3, "{report}");
+    for mesh in meshes {
+        let loss = mesh["loss"].as_f64().unwrap();
+        assert!(loss.is_finite() && loss > 0.0, "{mesh}");
+        assert!(mesh["faces"].as_u64().unwrap() > 0);
+    }
+    assert_eq!(report["unreadable"].as_array().unwrap().len(), 1, "{report}");
 }
 
 #[test]
@@ -144,11 +179,13 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
     assert!(String::from_utf8_lossy(&output.stderr).contains("--resume"));
 
     // Each bad argument is refused with a message that names what is wrong.
-    let refusals: [(&[&str], &str); 3] = [
+    let refusals: [(&[&str], &str); 5] = [
         (&["--curriculum", "ten:5"], "ten:5"),
         (&["--any-angle-share", "1.5"], "between 0 and 1"),
         // Freezing needs trained weights to keep.
         (&["--freeze-encoder"], "--init"),
+        (&["--procedural-weights", "blob=2"], "unknown shape kind 'blob'"),
+        (&["--procedural-weights", "box=2000"], "at most 1000"),
     ];
     for (i, (args, says)) in refusals.into_iter().enumerate() {
         let run = tmp.path().join(format!("refused-{i}"));

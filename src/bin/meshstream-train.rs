@@ -8,7 +8,7 @@ use anyhow::{Context, bail};
 use candle_core::DType;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
-use meshstream::mesh::write_mesh_file;
+use meshstream::mesh::{ReadLimits, expand_mesh_paths, read_mesh_file, write_mesh_file};
 use meshstream::model::{EncoderTraining, FaceConfig, parse_device};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
@@ -18,7 +18,7 @@ use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
 use meshstream::train::dit::evaluate::DitEvalOptions;
 use meshstream::train::dit::trainer::DitTrainer;
 use meshstream::train::dit::views::ViewConfig;
-use meshstream::train::evaluate::HELD_OUT_PROCEDURAL_SEED;
+use meshstream::train::evaluate::{EvalSet, HELD_OUT_PROCEDURAL_SEED, loss_per_mesh};
 use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
@@ -70,6 +70,9 @@ enum Command {
         #[arg(long, default_value_t = 400)]
         max_faces: usize,
     },
+    /// The teacher-forced loss of a model on meshes, mesh by mesh (nats per face, end of mesh
+    /// included, as in training): which shapes it has learned, whatever decoding does.
+    Loss(LossArgs),
     /// Draw the loss and evaluation curves of a run's log.jsonl into a PNG.
     Plot {
         log: PathBuf,
@@ -336,6 +339,7 @@ fn main() -> anyhow::Result<()> {
             eprintln!("wrote {count} shapes (seed {seed}) to {}", output.display());
             Ok(())
         }
+        Command::Loss(args) => loss_command(&args),
         Command::Plot { log, output } => {
             let records = read_log(&log).with_context(|| format!("reading {}", log.display()))?;
             plot_curves(&records, &output)?;
@@ -343,6 +347,89 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+#[derive(Args)]
+struct LossArgs {
+    /// A model folder (or a run folder: its best weights).
+    #[arg(long)]
+    model: PathBuf,
+    /// Meshes, or folders of them; each is scored as it is, in its own pose.
+    #[arg(required = true)]
+    meshes: Vec<PathBuf>,
+    /// Seed of the points sampled on each mesh's surface.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(serde::Serialize)]
+struct MeshLoss {
+    name: String,
+    faces: usize,
+    loss: f64,
+}
+
+/// `meshstream-train loss`: meshes that cannot be read or tokenized are reported and counted.
+fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
+    let folder = model_folder(&args.model);
+    let model = meshstream::model::checkpoint::load(&folder, &candle_core::Device::Cpu)
+        .with_context(|| format!("loading {}", folder.display()))?;
+    let cfg = model.config().clone();
+    let mut meshes = Vec::new();
+    let mut unreadable = Vec::new();
+    for path in expand_mesh_paths(&args.meshes)? {
+        let name = path
+            .file_stem()
+            .map_or_else(|| path.display().to_string(), |s| s.to_string_lossy().into());
+        match read_mesh_file(&path, &ReadLimits::default()) {
+            Ok(mesh) => meshes.push((name, mesh)),
+            Err(e) => unreadable.push(format!("{}: {e}", path.display())),
+        }
+    }
+    let sample = SampleConfig {
+        levels: cfg.quant_levels as u16,
+        num_points: cfg.num_points,
+        num_queries: cfg.num_latents,
+        augment: AugmentConfig::OFF,
+    };
+    let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed)?;
+    let losses = loss_per_mesh(&model, &set)?;
+    let rows: Vec<MeshLoss> = set
+        .items
+        .iter()
+        .zip(losses)
+        .map(|((_, s), loss)| MeshLoss { name: s.name.clone(), faces: s.faces.len(), loss })
+        .collect();
+    let positions: usize = rows.iter().map(|r| r.faces + 1).sum();
+    let per_position =
+        rows.iter().map(|r| r.loss * (r.faces + 1) as f64).sum::<f64>() / positions.max(1) as f64;
+    let mean = rows.iter().map(|r| r.loss).sum::<f64>() / rows.len().max(1) as f64;
+    if args.json {
+        let report = serde_json::json!({
+            "meshes": rows,
+            "loss_mean": mean,
+            "loss_per_face": per_position,
+            "left_out": left_out,
+            "unreadable": unreadable,
+        });
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!("| mesh | faces | loss (nats per face) |\n|---|---|---|");
+        for r in &rows {
+            println!("| {} | {} | {:.3} |", r.name, r.faces, r.loss);
+        }
+        println!("{} meshes: mean {mean:.3}, per face over all {per_position:.3}", rows.len());
+    }
+    for name in &left_out {
+        eprintln!("left out {name}: no faces, or more than {} after quantization", cfg.max_faces);
+    }
+    for line in &unreadable {
+        eprintln!("unreadable: {line}");
+    }
+    Ok(())
 }
 
 /// A run folder stands for its best weights (or its latest checkpoint before any evaluation).

@@ -68,6 +68,27 @@ impl EvalSet {
         Ok(Self { items, from_folder })
     }
 
+    /// Meshes given by the caller, as they are (no augmentation), their points sampled with
+    /// `seed`. Meshes with no faces or more than `max_faces` after quantization are left out;
+    /// their names come back with the set.
+    pub fn of_meshes(
+        meshes: &[(String, Mesh)],
+        cfg: &SampleConfig,
+        max_faces: usize,
+        seed: u64,
+    ) -> Result<(Self, Vec<String>), super::TrainError> {
+        let cfg = SampleConfig { augment: AugmentConfig::OFF, ..*cfg };
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (mut items, mut left_out) = (Vec::new(), Vec::new());
+        for (name, mesh) in meshes {
+            match prepare_sample(name, mesh, &cfg, max_faces, &mut rng)? {
+                Some(sample) => items.push((mesh.normalized()?.0, sample)),
+                None => left_out.push(name.clone()),
+            }
+        }
+        Ok((Self { from_folder: items.len(), items }, left_out))
+    }
+
     /// The items' indices by source: (folder, procedural).
     fn sources(&self) -> [std::ops::Range<usize>; 2] {
         let split = self.from_folder.min(self.items.len());
@@ -243,6 +264,20 @@ fn teacher_forced_loss(
     Ok(LossSum { sum: loss_sum, positions })
 }
 
+/// The teacher-forced loss of each mesh of the set from its own points, in the set's order:
+/// nats per face position (its faces and its end of mesh), as in training.
+pub fn loss_per_mesh(
+    model: &FaceModel,
+    set: &EvalSet,
+) -> Result<Vec<f64>, crate::model::ModelError> {
+    (0..set.items.len())
+        .map(|i| {
+            let loss = teacher_forced_loss(model, set, i..i + 1, 1, |i| i)?;
+            Ok(loss.sum / loss.positions as f64)
+        })
+        .collect()
+}
+
 /// Greedy reconstructions of every mesh of the set, `batch` sequences decoded together.
 pub fn reconstruct(
     model: &FaceModel,
@@ -329,6 +364,34 @@ mod tests {
             evaluate(&model, &one, 2, &MetricOptions::default()).unwrap().loss_other_points,
             None
         );
+    }
+
+    #[test]
+    fn losses_per_mesh_add_up_to_the_sets_and_oversized_meshes_are_left_out() {
+        let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+        let (_, model) = random_model(&cfg);
+        let shapes = ProceduralShapes::new(4, cfg.max_faces).take(3);
+        let mut meshes: Vec<(String, Mesh)> =
+            shapes.enumerate().map(|(i, (_, mesh))| (format!("shape-{i}"), mesh)).collect();
+        let big = crate::mesh::primitives::uv_sphere(0.5, 32, 16);
+        assert!(big.faces.len() > cfg.max_faces);
+        meshes.insert(1, ("big".into(), big));
+        let points = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        meshes.push(("points".into(), Mesh { vertices: points, ..Mesh::default() }));
+
+        let (set, left_out) =
+            EvalSet::of_meshes(&meshes, &sample_config(&cfg), cfg.max_faces, 0).unwrap();
+        assert_eq!(left_out, ["big", "points"]);
+        let names: Vec<&str> = set.items.iter().map(|(_, s)| s.name.as_str()).collect();
+        assert_eq!(names, ["shape-0", "shape-1", "shape-2"]);
+
+        let losses = loss_per_mesh(&model, &set).unwrap();
+        let positions: Vec<f64> =
+            set.items.iter().map(|(_, s)| (s.faces.len() + 1) as f64).collect();
+        let weighted: f64 = losses.iter().zip(&positions).map(|(l, p)| l * p).sum::<f64>()
+            / positions.iter().sum::<f64>();
+        let whole = teacher_forced_loss(&model, &set, 0..3, 3, |i| i).unwrap().mean().unwrap();
+        assert!((weighted - whole).abs() < 1e-4, "{weighted} vs {whole}");
     }
 
     #[test]
