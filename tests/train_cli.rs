@@ -144,7 +144,7 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_scores_meshes(&model, tmp.path());
 }
 
-/// `meshstream-train loss` scores every mesh it can read and reports the others.
+/// `meshstream-train loss` scores every mesh it can read and prepare, and reports the others.
 fn assert_scores_meshes(model: &Path, tmp: &Path) {
     let shapes = tmp.join("shapes");
     let status = train_bin()
@@ -153,6 +153,7 @@ fn assert_scores_meshes(model: &Path, tmp: &Path) {
         .unwrap();
     assert!(status.success());
     std::fs::write(shapes.join("broken.obj"), "f 1 2 3\n").unwrap();
+    std::fs::write(shapes.join("a-point.obj"), "v 1 1 1\nv 1 1 1\nv 1 1 1\nf 1 2 3\n").unwrap();
     let output = train_bin()
         .args(["loss", "--json", "--model", model.to_str().unwrap(), shapes.to_str().unwrap()])
         .output()
@@ -167,6 +168,9 @@ fn assert_scores_meshes(model: &Path, tmp: &Path) {
         assert!(mesh["faces"].as_u64().unwrap() > 0);
     }
     assert_eq!(report["unreadable"].as_array().unwrap().len(), 1, "{report}");
+    let left_out = report["left_out"].as_array().unwrap();
+    assert_eq!(left_out.len(), 1, "{report}");
+    assert!(left_out[0].as_str().unwrap().starts_with("a-point: "), "{report}");
 }
 
 #[test]

@@ -395,7 +395,7 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
         num_queries: cfg.num_latents,
         augment: AugmentConfig::OFF,
     };
-    let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed)?;
+    let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed);
     let losses = loss_per_mesh(&model, &set)?;
     let rows: Vec<MeshLoss> = set
         .items
@@ -412,7 +412,7 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
             "meshes": rows,
             "loss_mean": mean,
             "loss_per_face": per_position,
-            "left_out": left_out,
+            "left_out": left_out.iter().map(|(name, why)| format!("{name}: {why}")).collect::<Vec<_>>(),
             "unreadable": unreadable,
         });
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -423,8 +423,8 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
         }
         println!("{} meshes: mean {mean:.3}, per face over all {per_position:.3}", rows.len());
     }
-    for name in &left_out {
-        eprintln!("left out {name}: no faces, or more than {} after quantization", cfg.max_faces);
+    for (name, why) in &left_out {
+        eprintln!("left out {name}: {why}");
     }
     for line in &unreadable {
         eprintln!("unreadable: {line}");

@@ -69,24 +69,30 @@ impl EvalSet {
     }
 
     /// Meshes given by the caller, as they are (no augmentation), their points sampled with
-    /// `seed`. Meshes with no faces or more than `max_faces` after quantization are left out;
-    /// their names come back with the set.
+    /// `seed`. A mesh that cannot be prepared (no extent, no faces, or more than `max_faces`
+    /// after quantization) is left out, and comes back with the set as its name and why.
     pub fn of_meshes(
         meshes: &[(String, Mesh)],
         cfg: &SampleConfig,
         max_faces: usize,
         seed: u64,
-    ) -> Result<(Self, Vec<String>), super::TrainError> {
+    ) -> (Self, Vec<(String, String)>) {
         let cfg = SampleConfig { augment: AugmentConfig::OFF, ..*cfg };
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let (mut items, mut left_out) = (Vec::new(), Vec::new());
         for (name, mesh) in meshes {
-            match prepare_sample(name, mesh, &cfg, max_faces, &mut rng)? {
-                Some(sample) => items.push((mesh.normalized()?.0, sample)),
-                None => left_out.push(name.clone()),
+            let prepared = prepare_sample(name, mesh, &cfg, max_faces, &mut rng)
+                .and_then(|s| s.map(|sample| Ok((mesh.normalized()?.0, sample))).transpose());
+            match prepared {
+                Ok(Some(item)) => items.push(item),
+                Ok(None) => left_out.push((
+                    name.clone(),
+                    format!("no faces, or more than {max_faces} after quantization"),
+                )),
+                Err(e) => left_out.push((name.clone(), e.to_string())),
             }
         }
-        Ok((Self { from_folder: items.len(), items }, left_out))
+        (Self { from_folder: items.len(), items }, left_out)
     }
 
     /// The items' indices by source: (folder, procedural).
@@ -379,9 +385,13 @@ mod tests {
         let points = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
         meshes.push(("points".into(), Mesh { vertices: points, ..Mesh::default() }));
 
-        let (set, left_out) =
-            EvalSet::of_meshes(&meshes, &sample_config(&cfg), cfg.max_faces, 0).unwrap();
-        assert_eq!(left_out, ["big", "points"]);
+        let flat = Mesh::new(vec![[1.0; 3]; 3], vec![[0, 1, 2]]);
+        meshes.push(("no extent".into(), flat));
+
+        let (set, left_out) = EvalSet::of_meshes(&meshes, &sample_config(&cfg), cfg.max_faces, 0);
+        let names: Vec<&str> = left_out.iter().map(|(name, _)| name.as_str()).collect();
+        assert_eq!(names, ["big", "points", "no extent"]);
+        assert!(left_out[2].1.contains("extent"), "{left_out:?}");
         let names: Vec<&str> = set.items.iter().map(|(_, s)| s.name.as_str()).collect();
         assert_eq!(names, ["shape-0", "shape-1", "shape-2"]);
 
