@@ -90,8 +90,8 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     let config: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(frozen.join("train.json")).unwrap()).unwrap();
     assert_eq!(config["batch"]["sample"]["augment"]["any_angle_share"], 0.0);
-    let weights = &config["batch"]["procedural_weights"];
-    assert_eq!((&weights["Box"], &weights["LExtrusion"]), (&3.into(), &0.into()));
+    let mix = &config["batch"]["procedural_weights"];
+    assert_eq!((&mix["Box"], &mix["LExtrusion"]), (&3.into(), &0.into()));
     let weights = |dir: &Path| {
         candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
             .unwrap()
