@@ -11,8 +11,10 @@ shift $(($# < 2 ? $# : 2))
 target="${CARGO_TARGET_DIR:-target}/release"
 cargo build --release --quiet --bin meshstream --bin meshstream-train
 
-"$target/meshstream-train" shapes -o "$out/all/gt" -n 100
-"$target/meshstream-train" shapes -o "$out/primitives/gt" -n 60 --primitives
+# The shapes' flat polygons are split for the model's grid, as its training targets were.
+levels=$(grep -o '"quant_levels": *[0-9]*' "$model/config.json" | grep -o '[0-9]*$')
+"$target/meshstream-train" shapes -o "$out/all/gt" -n 100 --levels "$levels"
+"$target/meshstream-train" shapes -o "$out/primitives/gt" -n 60 --primitives --levels "$levels"
 for set in all primitives; do
   mkdir -p "$out/$set/model" "$out/$set/hull"
   for f in "$out/$set/gt"/*.ply; do

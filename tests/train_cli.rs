@@ -232,4 +232,12 @@ fn shapes_writes_the_held_aside_set_reproducibly() {
     )
     .unwrap();
     assert!(!mesh.faces.is_empty());
+
+    // A grid the tokenizer does not support is refused, naming the option.
+    let output = train_bin()
+        .args(["shapes", "-o", dir.path().join("c").to_str().unwrap(), "--levels", "64"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--levels"));
 }

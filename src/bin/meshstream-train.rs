@@ -10,6 +10,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
 use meshstream::mesh::{ReadLimits, expand_mesh_paths, read_mesh_file, write_mesh_file};
 use meshstream::model::{EncoderTraining, FaceConfig, parse_device};
+use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::checkpoint::{RunDir, export};
@@ -69,6 +70,10 @@ enum Command {
         /// Most faces per shape.
         #[arg(long, default_value_t = 400)]
         max_faces: usize,
+        /// The quantization grid the shapes' flat polygons are split for: the model's
+        /// `quant_levels`, so that its rebuilds can match them face for face.
+        #[arg(long, default_value_t = DEFAULT_LEVELS)]
+        levels: u16,
     },
     /// The teacher-forced loss of a model on meshes, mesh by mesh (nats per face, end of mesh
     /// included, as in training): which shapes it has learned, whatever decoding does.
@@ -325,12 +330,15 @@ fn main() -> anyhow::Result<()> {
             eprintln!("exported {} to {}", from.display(), output.display());
             Ok(())
         }
-        Command::Shapes { output, count, seed, primitives, max_faces } => {
+        Command::Shapes { output, count, seed, primitives, max_faces, levels } => {
+            let grid = Quantizer::new(levels).context("--levels")?;
             let kinds: &[ShapeKind] = if primitives { &ShapeKind::PRIMITIVES } else { &[] };
             std::fs::create_dir_all(&output)
                 .with_context(|| format!("creating {}", output.display()))?;
-            for (i, (kind, mesh)) in
-                ProceduralShapes::of_kinds(seed, max_faces, kinds).take(count).enumerate()
+            for (i, (kind, mesh)) in ProceduralShapes::of_kinds(seed, max_faces, kinds)
+                .on_grid(grid)
+                .take(count)
+                .enumerate()
             {
                 let path = output.join(format!("{i:03}-{kind:?}.ply"));
                 write_mesh_file(&mesh, &path, None)

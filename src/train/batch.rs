@@ -176,7 +176,8 @@ impl BatchSource {
             .map_or(0, |f| self.by_faces.partition_point(|&i| f.meshes[i].faces <= max_faces));
         let mut procedural =
             ProceduralShapes::weighted(rng.random(), max_faces, &self.cfg.procedural_weights)
-                .map_err(|e| TrainError::Config(e.to_string()))?;
+                .map_err(|e| TrainError::Config(e.to_string()))?
+                .on_grid(Quantizer::new(self.cfg.sample.levels)?);
         let mut samples = Vec::new();
         let mut positions = 0;
         // Bounded attempts: augmentation can push a mesh over the limit, so some draws fail.

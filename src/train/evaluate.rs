@@ -57,7 +57,8 @@ impl EvalSet {
             }
         }
         let from_folder = items.len();
-        let shapes = ProceduralShapes::new(HELD_OUT_PROCEDURAL_SEED, max_faces);
+        let shapes = ProceduralShapes::new(HELD_OUT_PROCEDURAL_SEED, max_faces)
+            .on_grid(Quantizer::new(cfg.levels)?);
         for (i, (kind, mesh)) in shapes.take(procedural).enumerate() {
             let name = format!("procedural-{i:03}-{kind:?}");
             if let Some(sample) = prepare_sample(&name, &mesh, &cfg, max_faces, &mut rng)? {

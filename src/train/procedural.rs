@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::mesh::Mesh;
 use crate::mesh::primitives::{cuboid, extrusion, frustum, torus, uv_sphere};
 use crate::mesh::transform::rotation;
-use crate::tokenize::canonical_triangulation;
+use crate::tokenize::{Quantizer, canonical_triangulation};
 
 /// What kind of shape a sample is, for logs, for stratified evaluation and for weighting the
 /// training mix.
@@ -91,6 +91,7 @@ pub struct ProceduralShapes {
     rng: ChaCha8Rng,
     max_faces: usize,
     kinds: Vec<ShapeKind>,
+    grid: Quantizer,
 }
 
 impl ProceduralShapes {
@@ -102,7 +103,18 @@ impl ProceduralShapes {
     /// Shapes of the given kinds only (all kinds if the list is empty).
     pub fn of_kinds(seed: u64, max_faces: usize, kinds: &[ShapeKind]) -> Self {
         let kinds = if kinds.is_empty() { ShapeKind::ALL.to_vec() } else { kinds.to_vec() };
-        Self { rng: ChaCha8Rng::seed_from_u64(seed), max_faces: max_faces.max(4), kinds }
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            max_faces: max_faces.max(4),
+            kinds,
+            grid: Quantizer::default(),
+        }
+    }
+
+    /// Flat polygons split as tokenization on `grid` splits them (the default grid unless
+    /// told): what is flat, and within rounding, depends on the grid.
+    pub fn on_grid(self, grid: Quantizer) -> Self {
+        Self { grid, ..self }
     }
 
     /// Shapes of every kind, each drawn in proportion to its weight (1 for a kind not listed,
@@ -147,7 +159,7 @@ impl Iterator for ProceduralShapes {
     fn next(&mut self) -> Option<Self::Item> {
         loop {
             let kind = self.kinds[self.rng.random_range(0..self.kinds.len())];
-            let mesh = shape(kind, &mut self.rng);
+            let mesh = shape(kind, &mut self.rng, self.grid);
             // Every kind can draw a small enough variant, so this loop ends quickly.
             if !mesh.faces.is_empty() && mesh.faces.len() <= self.max_faces {
                 return Some((kind, mesh));
@@ -157,15 +169,17 @@ impl Iterator for ProceduralShapes {
 }
 
 /// One random shape of a kind, standing on the data's vertical axis (y, see
-/// [`super::augment::UP`]).
-pub fn shape(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
-    // Built with z up (profiles are drawn in xy and extruded along z), then turned so that
-    // z goes to y: -90 degrees about x.
-    // Its flat polygons are split the one way tokenization splits them, so that a shape used as
-    // ground truth has the faces a model can learn to rebuild.
-    let turned = z_up(kind, rng)
-        .transformed(&rotation([1.0, 0.0, 0.0], -std::f32::consts::FRAC_PI_2), [0.0; 3]);
-    canonical_triangulation(&turned)
+/// [`super::augment::UP`]), its flat polygons split as tokenization on `grid` splits them.
+pub fn shape(kind: ShapeKind, rng: &mut impl Rng, grid: Quantizer) -> Mesh {
+    // Split the one way tokenization splits them, so that a shape used as ground truth has the
+    // faces a model can learn to rebuild.
+    canonical_triangulation(&standing(kind, rng), grid)
+}
+
+/// Built with z up (profiles are drawn in xy and extruded along z), then turned so that z goes
+/// to y: -90 degrees about x.
+fn standing(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
+    z_up(kind, rng).transformed(&rotation([1.0, 0.0, 0.0], -std::f32::consts::FRAC_PI_2), [0.0; 3])
 }
 
 fn z_up(kind: ShapeKind, rng: &mut impl Rng) -> Mesh {
@@ -384,7 +398,8 @@ fn cluster(rng: &mut impl Rng) -> Mesh {
     let mut mesh = Mesh::default();
     for _ in 0..parts {
         let kind = ShapeKind::PRIMITIVES[rng.random_range(0..ShapeKind::PRIMITIVES.len())];
-        let part = shape(kind, rng);
+        // Turned at random, a part's split is moot: the assembly is split as a whole.
+        let part = standing(kind, rng);
         let turn = rotation([0.0, 0.0, 1.0], rng.random_range(0.0..std::f32::consts::TAU));
         let offset =
             [rng.random_range(-0.4..0.4), rng.random_range(-0.4..0.4), rng.random_range(0.0..0.4)];
@@ -417,7 +432,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         for _ in 0..10 {
             // A cone's apex is its only highest vertex, above the middle of its base.
-            let cone = shape(ShapeKind::Cone, &mut rng);
+            let cone = standing(ShapeKind::Cone, &mut rng);
             let up = super::super::augment::UP;
             let top = cone.vertices.iter().map(|v| v[up]).fold(f32::MIN, f32::max);
             let apex: Vec<_> = cone.vertices.iter().filter(|v| v[up] > top - 1e-4).collect();

@@ -308,7 +308,7 @@ fn source_meshes(spec: &CacheSpec) -> Result<(Vec<(String, Mesh)>, CacheSkips), 
         skipped.over_face_limit = folder.skipped.over_face_limit;
         sources.extend(folder.meshes.into_iter().map(|r| (r.name, r.mesh)));
     }
-    let shapes = ProceduralShapes::new(spec.seed, ae.max_faces);
+    let shapes = ProceduralShapes::new(spec.seed, ae.max_faces).on_grid(q);
     for (i, (kind, mesh)) in shapes.take(spec.procedural).enumerate() {
         match mesh.normalized() {
             Ok((normalized, _)) => {
