@@ -37,12 +37,10 @@ type Vector = [i64; 3];
 pub fn canonical_polygons(faces: &[FaceToken]) -> Vec<FaceToken> {
     let triangles: Vec<[ZyxVertex; 3]> = faces.iter().map(face_vertices).collect();
     let by_edge = edges_to_faces(&triangles);
-    let mut sets = DisjointSets::new(triangles.len());
-    for (i, j) in flat_neighbours(&triangles, &by_edge) {
-        sets.union(i, j);
-    }
+    let mut sets = exactly_flat_regions(&triangles, &by_edge);
     let flat = Regions::of(&mut sets, triangles.len());
-    for [i, j] in rounding_bent_quads(&triangles, &by_edge, &flat) {
+    for quad in rounding_bent_quads(&triangles, &by_edge, &flat) {
+        let [i, j] = quad.faces;
         sets.union(i, j);
     }
     let regions = Regions::of(&mut sets, triangles.len());
@@ -134,6 +132,15 @@ fn edges_to_faces(triangles: &[[ZyxVertex; 3]]) -> EdgeFaces {
     by_edge
 }
 
+/// The faces joined into regions across [`flat_neighbours`].
+fn exactly_flat_regions(triangles: &[[ZyxVertex; 3]], by_edge: &EdgeFaces) -> DisjointSets {
+    let mut sets = DisjointSets::new(triangles.len());
+    for (i, j) in flat_neighbours(triangles, by_edge) {
+        sets.union(i, j);
+    }
+    sets
+}
+
 /// Pairs of faces across an edge that exactly two faces share, in opposite directions (a
 /// consistently wound surface), whose normals point the same way: the two lie flat together.
 fn flat_neighbours(triangles: &[[ZyxVertex; 3]], by_edge: &EdgeFaces) -> Vec<(usize, usize)> {
@@ -222,6 +229,7 @@ fn dot(a: Vector, b: Vector) -> i64 {
 mod tests {
     use proptest::prelude::*;
 
+    use super::near_flat::Quad;
     use super::*;
     use crate::mesh::primitives::{cuboid, frustum};
     use crate::tokenize::{is_canonical_face, tokenize};
@@ -343,14 +351,11 @@ mod tests {
         Mesh::new(mesh.vertices.clone(), caps.chain(sides).collect())
     }
 
-    /// The pairs of faces `canonical_polygons` treats as quads flat within rounding.
-    fn bent_quads(faces: &[FaceToken]) -> Vec<[usize; 2]> {
+    /// The quads flat within rounding that `canonical_polygons` re-splits.
+    fn bent_quads(faces: &[FaceToken]) -> Vec<Quad> {
         let triangles: Vec<[ZyxVertex; 3]> = faces.iter().map(face_vertices).collect();
         let by_edge = edges_to_faces(&triangles);
-        let mut sets = DisjointSets::new(triangles.len());
-        for (i, j) in flat_neighbours(&triangles, &by_edge) {
-            sets.union(i, j);
-        }
+        let mut sets = exactly_flat_regions(&triangles, &by_edge);
         rounding_bent_quads(&triangles, &by_edge, &Regions::of(&mut sets, triangles.len()))
     }
 
@@ -367,7 +372,8 @@ mod tests {
         let after = sorted(canonical_polygons(&one));
         assert_eq!(after, sorted(canonical_polygons(&other)));
         // Every side, bent or not, is a fan from its smallest corner.
-        for [i, j] in bent {
+        for quad in bent {
+            let [i, j] = quad.faces;
             let (a, b) = (face_vertices(&one[i]), face_vertices(&one[j]));
             let smallest = a.iter().chain(&b).min().copied().unwrap();
             let fan: Vec<&FaceToken> = after
@@ -397,18 +403,13 @@ mod tests {
         }
     }
 
-    /// The faces `i` = (x, y, p) and `j` = (y, x, q) split the other way: (q, y, p), (p, x, q).
-    fn flipped(faces: &[FaceToken], [i, j]: [usize; 2]) -> Vec<FaceToken> {
-        let (ti, tj) = (face_vertices(&faces[i]), face_vertices(&faces[j]));
-        let [x, y, p] = (0..3)
-            .map(|k| [ti[k], ti[(k + 1) % 3], ti[(k + 2) % 3]])
-            .find(|&[x, y, _]| (0..3).any(|k| tj[k] == y && tj[(k + 1) % 3] == x))
-            .unwrap();
-        let q = *tj.iter().find(|&&v| v != x && v != y).unwrap();
+    /// The quad's faces split along its other diagonal, corners 1-3.
+    fn flipped(faces: &[FaceToken], quad: &Quad) -> Vec<FaceToken> {
+        let [x, q, y, p] = quad.corners;
         let zyx = |t: [ZyxVertex; 3]| canonical_face(t.map(|[z, y, x]| [x, y, z])).unwrap();
         let mut out = faces.to_vec();
-        out[i] = zyx([q, y, p]);
-        out[j] = zyx([p, x, q]);
+        out[quad.faces[0]] = zyx([q, y, p]);
+        out[quad.faces[1]] = zyx([p, x, q]);
         out
     }
 
@@ -506,9 +507,9 @@ mod tests {
             let faces = heightfield(n, spacing, tilt, &bumps, diagonals);
             let expected = sorted(canonical_polygons(&faces));
             let mut other = faces.clone();
-            for (k, pair) in bent_quads(&faces).into_iter().enumerate() {
+            for (k, quad) in bent_quads(&faces).iter().enumerate() {
                 if flips >> (k % 64) & 1 == 1 {
-                    other = flipped(&other, pair);
+                    other = flipped(&other, quad);
                 }
             }
             prop_assert_eq!(sorted(canonical_polygons(&other)), expected.clone());

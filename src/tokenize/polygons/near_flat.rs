@@ -23,10 +23,11 @@ pub(super) fn edge_key(a: ZyxVertex, b: ZyxVertex) -> (ZyxVertex, ZyxVertex) {
 
 /// Two faces across an edge whose four corners make a strictly convex quad that is flat within
 /// the grid's rounding but not exactly.
-struct Quad {
-    faces: [usize; 2],
+#[derive(Debug)]
+pub(super) struct Quad {
+    pub(super) faces: [usize; 2],
     /// Counter-clockwise seen from the faces' side; the input's diagonal is corners 0-2.
-    corners: [ZyxVertex; 4],
+    pub(super) corners: [ZyxVertex; 4],
 }
 
 impl Quad {
@@ -89,13 +90,13 @@ fn bend(a: ZyxVertex, b: ZyxVertex, p: ZyxVertex, q: ZyxVertex) -> Bend {
     }
 }
 
-/// The pairs of faces that make quads flat within the grid's rounding and standing alone, each
-/// with faces that are alone in their exact flat region.
+/// The quads flat within the grid's rounding that stand alone, each of faces that are alone in
+/// their exact flat region.
 pub(super) fn rounding_bent_quads(
     triangles: &[[ZyxVertex; 3]],
     by_edge: &EdgeFaces,
     flat: &Regions,
-) -> Vec<[usize; 2]> {
+) -> Vec<Quad> {
     let lone = |f: usize| flat.members(f).len() == 1;
     let quads: Vec<Quad> = by_edge
         .values()
@@ -111,7 +112,8 @@ pub(super) fn rounding_bent_quads(
         }
     }
     let context = Context { triangles, by_edge, flat, quads_of };
-    quads.iter().filter(|q| context.stands_alone(q)).map(|q| q.faces).collect()
+    let alone: Vec<bool> = quads.iter().map(|q| context.stands_alone(q)).collect();
+    quads.into_iter().zip(alone).filter_map(|(q, alone)| alone.then_some(q)).collect()
 }
 
 struct Context<'a> {
