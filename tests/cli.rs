@@ -230,6 +230,20 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("decoding") && !err.contains("panicked"), "{err}");
+
+    // An image model trained for another encoder: refused, with what to do about it.
+    let foreign = dir.path().join("foreign-dit");
+    std::fs::create_dir(&foreign).unwrap();
+    let shipped = Path::new(model).join("dit");
+    std::fs::copy(shipped.join("model.safetensors"), foreign.join("model.safetensors")).unwrap();
+    let mut config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(shipped.join("config.json")).unwrap()).unwrap();
+    config["encoder_fingerprint"] = "0123456789abcdef".into();
+    std::fs::write(foreign.join("config.json"), config.to_string()).unwrap();
+    let o = meshstream(&[&args[..], &["--image-model", path(&foreign)]].concat());
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("another encoder") && err.contains("meshstream-train dit"), "{err}");
 }
 
 #[test]

@@ -117,6 +117,9 @@ fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
     let trained: meshstream::diffusion::LatentStats =
         serde_json::from_value(stats.clone()).unwrap();
     assert_eq!(loaded.config().latent_stats, trained);
+    // It records the encoder it was trained for, and so pairs with its autoencoder.
+    let encoder = meshstream::model::checkpoint::encoder_fingerprint(&autoencoder()).unwrap();
+    assert_eq!(loaded.config().encoder_fingerprint.as_ref(), Some(&encoder));
 
     assert_plots(&resumed, &tmp.path().join("curves.png"));
 }

@@ -55,7 +55,9 @@ pub fn run(args: &DiffusionBenchArgs) -> anyhow::Result<()> {
     let face = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let (diffusion, weights) = match image_model_dir(&args.model, None) {
-        Some(dir) => (load_image_model(&dir, None, &device)?, dir.display().to_string()),
+        Some(dir) => {
+            (load_image_model(&dir, &args.model, None, &device)?, dir.display().to_string())
+        }
         None => (random_tiny(&device)?, "random tiny weights".to_string()),
     };
     let cfg = diffusion.config().clone();

@@ -52,7 +52,7 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
     let dir = image_model_dir(&args.model, args.image_model.as_deref()).with_context(|| {
         format!("{} has no image model (dit/); pass --image-model", args.model.display())
     })?;
-    let diffusion = load_image_model(&dir, args.image_encoder.as_deref(), &device)?;
+    let diffusion = load_image_model(&dir, &args.model, args.image_encoder.as_deref(), &device)?;
     let size = u32::try_from(diffusion.config().image_encoder.image_size())?;
     let bytes =
         std::fs::read(&args.image).with_context(|| format!("reading {}", args.image.display()))?;

@@ -67,14 +67,19 @@ pub fn image_model_dir(model: &Path, explicit: Option<&Path>) -> Option<std::pat
     }
 }
 
-/// Loads an image model; `dinov2` is the frozen backbone's weights for a DINOv2 config.
+/// Loads the image model in `dir` to run beside the face model in `face_model`, which must
+/// have the encoder it was trained for; `dinov2` is the frozen backbone's weights for a DINOv2
+/// config.
 pub fn load_image_model(
     dir: &Path,
+    face_model: &Path,
     dinov2: Option<&Path>,
     device: &Device,
 ) -> anyhow::Result<DiffusionModel> {
-    dit_checkpoint::load(dir, device, dinov2)
-        .with_context(|| format!("loading the image model in {}", dir.display()))
+    let model = dit_checkpoint::load(dir, device, dinov2)
+        .with_context(|| format!("loading the image model in {}", dir.display()))?;
+    dit_checkpoint::check_encoder(model.config(), dir, face_model)?;
+    Ok(model)
 }
 
 /// The parser of a `--candidates` flag: 1 to `MAX_CANDIDATES`.

@@ -127,7 +127,9 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     let model = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let image_model = match image_model_dir(&args.model, args.image_model.as_deref()) {
-        Some(dir) => Some(load_image_model(&dir, args.image_encoder.as_deref(), &device)?),
+        Some(dir) => {
+            Some(load_image_model(&dir, &args.model, args.image_encoder.as_deref(), &device)?)
+        }
         None => {
             tracing::info!("no image model: image requests are off");
             None

@@ -12,7 +12,8 @@ use super::config::{DitConfig, ImageEncoderConfig};
 use super::image_encoder::Dinov2Encoder;
 use super::latent_model::DiffusionModel;
 use crate::model::checkpoint::{
-    build_checked, copy_into_varmap, detached_weights, read_config, save_checkpoint,
+    build_checked, copy_into_varmap, detached_weights, encoder_fingerprint, read_config,
+    save_checkpoint,
 };
 use crate::model::{ModelError, Result};
 
@@ -59,6 +60,22 @@ pub fn load(dir: &Path, device: &Device, dinov2_weights: Option<&Path>) -> Resul
         (ImageEncoderConfig::Patch(_), _) => None,
     };
     build_checked(dir, device, |vb| DiffusionModel::new(&cfg, vb, dinov2))
+}
+
+/// Refuses the image model in `dir` beside the face model in `face_model` when it recorded
+/// another encoder than that model's: its latents would mean nothing to the decoder.
+pub fn check_encoder(cfg: &DitConfig, dir: &Path, face_model: &Path) -> Result<()> {
+    let Some(expected) = &cfg.encoder_fingerprint else { return Ok(()) };
+    let found = encoder_fingerprint(face_model)?;
+    if *expected == found {
+        return Ok(());
+    }
+    Err(ModelError::ForeignEncoder {
+        image_model: dir.to_path_buf(),
+        face_model: face_model.to_path_buf(),
+        expected: expected.clone(),
+        found,
+    })
 }
 
 /// Copies a checkpoint's weights into a training `VarMap` built for the same config (to resume
@@ -153,5 +170,32 @@ mod tests {
             let n: usize = varmap.all_vars().iter().map(|v| v.elem_count()).sum();
             assert_eq!(n, cfg.parameter_count());
         }
+    }
+
+    #[test]
+    fn an_image_model_is_refused_beside_another_encoder() {
+        let face = tempfile::tempdir().unwrap();
+        let face_cfg = crate::model::FaceConfig::micro();
+        let (face_vars, _) = crate::model::testing::random_model(&face_cfg);
+        crate::model::checkpoint::save(face.path(), &face_cfg, &face_vars).unwrap();
+        let dir = Path::new("dit");
+        let mut cfg = DitConfig::micro();
+        // Made before fingerprints were recorded: paired unchecked.
+        check_encoder(&cfg, dir, face.path()).unwrap();
+        cfg.encoder_fingerprint = Some(encoder_fingerprint(face.path()).unwrap());
+        check_encoder(&cfg, dir, face.path()).unwrap();
+        cfg.encoder_fingerprint = Some("0123456789abcdef".into());
+        let err = check_encoder(&cfg, dir, face.path()).unwrap_err();
+        assert!(matches!(err, ModelError::ForeignEncoder { .. }), "{err}");
+        assert!(err.to_string().contains("meshstream-train dit --ae"), "{err}");
+    }
+
+    #[test]
+    fn the_shipped_image_model_is_for_the_shipped_encoder() {
+        let face = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default");
+        let dir = face.join("dit");
+        let cfg = load_config(&dir).unwrap();
+        assert!(cfg.encoder_fingerprint.is_some(), "models/default/dit records no encoder");
+        check_encoder(&cfg, &dir, &face).unwrap();
     }
 }

@@ -107,6 +107,12 @@ pub struct DitConfig {
     pub condition_dropout: f64,
     pub image_encoder: ImageEncoderConfig,
     pub norm_eps: f64,
+    /// [`encoder_fingerprint`](crate::model::checkpoint::encoder_fingerprint) of the face
+    /// autoencoder whose latents this model learned to generate, recorded by training: the
+    /// model is refused beside a face model with another encoder. `None` in models made before
+    /// it was recorded, which are paired unchecked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoder_fingerprint: Option<String>,
 }
 
 impl DitConfig {
@@ -122,6 +128,7 @@ impl DitConfig {
             mlp_hidden: 768,
             timestep_frequencies: 128,
             latent_stats: LatentStats::identity(64),
+            encoder_fingerprint: None,
             condition_dropout: 0.1,
             image_encoder: ImageEncoderConfig::Patch(PatchEncoderConfig {
                 image_size: 64,
@@ -148,6 +155,7 @@ impl DitConfig {
             mlp_hidden: 3072,
             timestep_frequencies: 128,
             latent_stats: LatentStats::identity(64),
+            encoder_fingerprint: None,
             condition_dropout: 0.1,
             image_encoder: ImageEncoderConfig::Dinov2(Dinov2Config {
                 image_size: 518,
@@ -171,6 +179,7 @@ impl DitConfig {
             mlp_hidden: 64,
             timestep_frequencies: 8,
             latent_stats: LatentStats::identity(4),
+            encoder_fingerprint: None,
             condition_dropout: 0.1,
             image_encoder: ImageEncoderConfig::Patch(PatchEncoderConfig {
                 image_size: 16,

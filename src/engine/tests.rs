@@ -288,6 +288,7 @@ fn image_engine(config: EngineConfig) -> (Engine, FaceModel, crate::diffusion::D
         num_latents: cfg.num_latents,
         latent_dim: cfg.latent_dim,
         latent_stats: crate::diffusion::LatentStats::identity(cfg.latent_dim),
+        encoder_fingerprint: None,
         ..crate::diffusion::DitConfig::micro()
     };
     let (varmap, dit) = crate::diffusion::checkpoint::random_varmap(&dit_cfg);

@@ -96,6 +96,55 @@ fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String,
     Ok((path, tensors))
 }
 
+/// A fingerprint of the shape encoder's weights in `dir`: an image model generates the latents
+/// of one encoder only, and records this to refuse being paired with another. The weights are
+/// hashed as f16 values, so the f16 and f32 exports of one encoder agree (an encoder frozen
+/// since an f16 export is bit for bit that export).
+pub fn encoder_fingerprint(dir: &Path) -> Result<String> {
+    let (_, tensors) = load_tensors(dir, &Device::Cpu)?;
+    let mut names: Vec<&String> = tensors.keys().filter(|n| n.starts_with("encoder.")).collect();
+    if names.is_empty() {
+        return Err(ModelError::MissingTensor {
+            path: dir.join(WEIGHTS_FILE),
+            name: "encoder.*".into(),
+        });
+    }
+    names.sort();
+    let mut hash = Fnv1a::default();
+    for name in names {
+        let t = &tensors[name];
+        hash.write(name.as_bytes());
+        for d in t.dims() {
+            hash.write(&(*d as u64).to_le_bytes());
+        }
+        let values =
+            t.to_dtype(DType::F16)?.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+        values.iter().for_each(|v| hash.write(&v.to_le_bytes()));
+    }
+    Ok(hash.hex())
+}
+
+/// FNV-1a (64 bit): a content fingerprint, not a security hash; it only has to notice changed
+/// weights.
+pub(crate) struct Fnv1a(u64);
+
+impl Default for Fnv1a {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Fnv1a {
+    pub fn write(&mut self, bytes: &[u8]) {
+        self.0 =
+            bytes.iter().fold(self.0, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
+    }
+
+    pub fn hex(&self) -> String {
+        format!("{:016x}", self.0)
+    }
+}
+
 /// A problem with one tensor, recorded while the model is built.
 #[derive(Debug, Clone)]
 enum TensorProblem {
@@ -274,6 +323,37 @@ mod tests {
         load_into_varmap(dir.path(), &fresh, &Device::Cpu).unwrap();
         let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
+    }
+
+    #[test]
+    fn the_encoder_fingerprint_follows_the_encoder_only() {
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let saved = |edit: &dyn Fn(&str, &Tensor) -> Tensor, dtype: DType| {
+            let dir = tempfile::tempdir().unwrap();
+            let data = varmap.data().lock().unwrap();
+            let weights: HashMap<String, Tensor> = data
+                .iter()
+                .map(|(name, var)| {
+                    // Values an f16 file holds exactly, as after an f16 export.
+                    let t = var.as_tensor().to_dtype(DType::F16).unwrap();
+                    let t = edit(name, &t.to_dtype(DType::F32).unwrap());
+                    (name.clone(), t.to_dtype(dtype).unwrap())
+                })
+                .collect();
+            write_model_dir(dir.path(), &cfg, &weights).unwrap();
+            encoder_fingerprint(dir.path()).unwrap()
+        };
+        let keep = |_: &str, t: &Tensor| t.clone();
+        let fingerprint = saved(&keep, DType::F32);
+        assert_eq!(saved(&keep, DType::F16), fingerprint, "f16 and f32 copies differ");
+        let nudge = |prefix: &'static str| {
+            move |name: &str, t: &Tensor| {
+                if name.starts_with(prefix) { (t + 0.25).unwrap() } else { t.clone() }
+            }
+        };
+        assert_eq!(saved(&nudge("decoder."), DType::F32), fingerprint);
+        assert_ne!(saved(&nudge("encoder."), DType::F32), fingerprint);
     }
 
     #[cfg(unix)]

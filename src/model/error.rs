@@ -43,6 +43,13 @@ pub enum ModelError {
 
     #[error("checkpoint {path}: unexpected tensor(s) not used by the config: {names:?}")]
     UnexpectedTensors { path: PathBuf, names: Vec<String> },
+
+    #[error(
+        "the image model in {image_model} generates the latents of another encoder than the face \
+         model's in {face_model} (encoder fingerprints {expected} and {found}): train an image \
+         model for this face model with `meshstream-train dit --ae {face_model}`"
+    )]
+    ForeignEncoder { image_model: PathBuf, face_model: PathBuf, expected: String, found: String },
 }
 
 impl ModelError {

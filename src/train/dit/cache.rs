@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::diffusion::{LatentStats, latent_stats};
 use crate::mesh::Mesh;
-use crate::model::checkpoint::WEIGHTS_FILE;
+use crate::model::checkpoint::{Fnv1a, WEIGHTS_FILE};
 use crate::model::{FaceConfig, FaceModel, TrainBatch};
 use crate::tokenize::Quantizer;
 
@@ -50,19 +50,10 @@ impl AutoencoderId {
         let config = crate::model::checkpoint::load_config(dir)?;
         let path = dir.join(WEIGHTS_FILE);
         let bytes = std::fs::read(&path).map_err(TrainError::io(&path))?;
-        Ok(Self {
-            config,
-            weights_bytes: bytes.len() as u64,
-            weights_fnv1a: format!("{:016x}", fnv1a(&bytes)),
-        })
+        let mut hash = Fnv1a::default();
+        hash.write(&bytes);
+        Ok(Self { config, weights_bytes: bytes.len() as u64, weights_fnv1a: hash.hex() })
     }
-}
-
-/// A content fingerprint, not a security hash: it only has to notice a changed weights file.
-fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes
-        .iter()
-        .fold(0xcbf2_9ce4_8422_2325, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3))
 }
 
 /// Everything a cache is built from.

@@ -68,6 +68,8 @@ impl DitTrainer {
             }
         };
         cfg.model.latent_stats = cache.stats(MIN_LATENT_STD)?;
+        cfg.model.encoder_fingerprint =
+            Some(model_checkpoint::encoder_fingerprint(&cfg.autoencoder)?);
         cfg.model.validate()?;
         let json =
             serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
@@ -75,8 +77,10 @@ impl DitTrainer {
         let trainer = Self::build(cfg, dir, device, autoencoder, cache)?;
         if let Some(init) = init {
             let mut init_cfg = dit_checkpoint::load_config(init)?;
-            // The statistics belong to the data; the weights only need the same architecture.
+            // The statistics and the encoder belong to the data; the weights only need the same
+            // architecture.
             init_cfg.latent_stats = trainer.cfg.model.latent_stats.clone();
+            init_cfg.encoder_fingerprint = trainer.cfg.model.encoder_fingerprint.clone();
             if init_cfg != trainer.cfg.model {
                 return Err(TrainError::Config(format!(
                     "{} has a different diffusion model configuration than this run",
