@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The training-free baselines on the same meshes as scripts/evaluate-model.sh: for every mesh of
-# the lowpoly dev split and of famous-dev, the convex hull and the Poisson surface of the same
-# input points the model gets, at the same face budget, scored with `meshstream eval`.
+# the lowpoly dev split and of famous-dev, the convex hull and the Poisson surface of the points
+# a reconstruction is judged and fitted against (its reference points), at the model's face
+# budget, scored with `meshstream eval`.
 # Usage: scripts/evaluate-baselines.sh [MODEL_DIR] [OUT_DIR]
-# (MODEL_DIR only supplies the input point count and face budget from its config.json.)
+# (MODEL_DIR only supplies the face budget from its config.json.)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}

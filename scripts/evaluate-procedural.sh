@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The model against the convex hull on procedural shapes it never trained on (the trainers'
-# held-aside seed): 100 shapes of every kind, and 60 simple primitives. Each method gets the
-# same 1,024 input points per shape; `meshstream eval` scores them (DESIGN.md's CD/HD).
+# held-aside seed): 100 shapes of every kind, and 60 simple primitives. The hull is built from
+# the points a reconstruction is judged and fitted against (16,384 per shape; the encoder takes
+# 1,024 of its own); `meshstream eval` scores them (DESIGN.md's CD/HD).
 # Usage: scripts/evaluate-procedural.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -81,5 +81,5 @@ fn flat_input_and_a_missing_model_are_clear_errors() {
         path(&dir.path().join("no-model")),
     ]);
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--points and --max-faces"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("the default --max-faces"));
 }

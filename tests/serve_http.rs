@@ -75,17 +75,27 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
     assert!(faces > 0 && faces <= 60);
 
     // The same shape scaled by 10 and moved: the same mesh, scaled and moved the same way.
+    // As decoded exactly; fitted (the default) up to a tenth of a grid step, since the
+    // moved points round differently in the normalized frame and the fit's nearest points
+    // can break a near tie the other way.
     let mut moved = cloud.clone();
     for v in &mut moved.vertices {
         *v = [v[0] * 10.0 + 5.0, v[1] * 10.0 - 20.0, v[2] * 10.0 + 1.0];
     }
-    let (_, out) = reconstruct_glb(&server, &points_json(&moved, json!({"max_faces": 60}))).await;
-    let out = read_mesh(&out, Format::Gltf, &ReadLimits::default()).unwrap();
-    assert_eq!(out.faces.len(), base.faces.len());
-    for (a, b) in base.vertices.iter().zip(&out.vertices) {
-        let expected = [a[0] * 10.0 + 5.0, a[1] * 10.0 - 20.0, a[2] * 10.0 + 1.0];
-        for k in 0..3 {
-            assert!((b[k] - expected[k]).abs() < 1e-3, "{b:?} vs {expected:?}");
+    let (lo, hi) = moved.bounds().unwrap();
+    let step = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f32, f32::max) / 128.0;
+    for (fit_rounds, tolerance) in [(0, 1e-3), (40, step / 10.0)] {
+        let options = json!({"max_faces": 60, "fit_rounds": fit_rounds});
+        let (_, base) = reconstruct_glb(&server, &points_json(&cloud, options.clone())).await;
+        let (_, out) = reconstruct_glb(&server, &points_json(&moved, options)).await;
+        let base = read_mesh(&base, Format::Gltf, &ReadLimits::default()).unwrap();
+        let out = read_mesh(&out, Format::Gltf, &ReadLimits::default()).unwrap();
+        assert_eq!(out.faces, base.faces);
+        for (a, b) in base.vertices.iter().zip(&out.vertices) {
+            let expected = [a[0] * 10.0 + 5.0, a[1] * 10.0 - 20.0, a[2] * 10.0 + 1.0];
+            for k in 0..3 {
+                assert!((b[k] - expected[k]).abs() < tolerance, "{b:?} vs {expected:?}");
+            }
         }
     }
 

@@ -23,7 +23,7 @@ pub enum Method {
 }
 
 /// The baseline's mesh for a cloud of points (with normals for Poisson, as
-/// [`crate::mesh::encoder_points`] gives them), with at most `max_faces` faces. The hull is
+/// [`crate::mesh::reference_points`] gives them), with at most `max_faces` faces. The hull is
 /// held to the same budget as Poisson and the model, so that every row of a comparison has
 /// the same number of faces to spend.
 pub fn baseline_mesh(

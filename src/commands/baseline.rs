@@ -4,14 +4,10 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use meshstream::baseline::{Method, PoissonOptions, baseline_mesh};
-use meshstream::mesh::{Format, write_mesh_file};
+use meshstream::mesh::{Format, REFERENCE_POINTS, reference_points, write_mesh_file};
 use meshstream::model::checkpoint;
 
-use super::input_points;
-
-/// Most input points accepted: a million is 100x what the models take, and the Poisson solver's
-/// time and memory grow with the count.
-const MAX_POINTS: usize = 1 << 20;
+use super::{normalized_input, point_count};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum MethodName {
@@ -34,14 +30,14 @@ pub struct BaselineArgs {
     format: Option<Format>,
     #[arg(long, value_enum)]
     method: MethodName,
-    /// Model folder whose config.json gives the default --points and --max-faces, so that the
-    /// baseline sees the model's input and spends its face budget (not needed when both flags
-    /// are given).
+    /// Model folder whose config.json gives the default --max-faces, so that the baseline
+    /// spends the model's face budget (not needed when the flag is given).
     #[arg(long, env = "MESHSTREAM_MODEL", default_value = "models/default")]
     model: PathBuf,
-    /// Input points drawn from the input [default: the model's num_points].
-    #[arg(long)]
-    points: Option<usize>,
+    /// The most points drawn from the input: by default the points `reconstruct` judges and
+    /// fits its mesh against (its --reference-points), so that both see the same input.
+    #[arg(long, default_value_t = REFERENCE_POINTS, value_parser = point_count())]
+    points: usize,
     /// Face budget: the result is simplified to at most this many faces [default: the
     /// model's max_faces].
     #[arg(long)]
@@ -65,9 +61,10 @@ pub struct BaselineArgs {
 }
 
 pub fn run(args: &BaselineArgs) -> anyhow::Result<()> {
-    let (points, max_faces) = budgets(args)?;
-    anyhow::ensure!(points <= MAX_POINTS, "--points {points} is over the limit of {MAX_POINTS}");
-    let (cloud, normalization) = input_points(&args.input, points, args.seed)?;
+    let max_faces = face_budget(args)?;
+    let (input, normalization) = normalized_input(&args.input)?;
+    let cloud =
+        reference_points(&input, args.points, args.seed).context("preparing the input points")?;
     let method = match args.method {
         MethodName::Hull => Method::Hull,
         MethodName::Poisson => Method::Poisson(PoissonOptions {
@@ -93,17 +90,17 @@ pub fn run(args: &BaselineArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// (input points, face budget): the flags, or the model's config where a flag is absent.
-fn budgets(args: &BaselineArgs) -> anyhow::Result<(usize, usize)> {
-    if let (Some(points), Some(max_faces)) = (args.points, args.max_faces) {
-        return Ok((points, max_faces));
+/// The face budget: the flag, or the model's when it is absent.
+fn face_budget(args: &BaselineArgs) -> anyhow::Result<usize> {
+    if let Some(max_faces) = args.max_faces {
+        return Ok(max_faces);
     }
     let cfg = checkpoint::load_config(&args.model).with_context(|| {
         format!(
-            "reading the model config in {} for the default --points and --max-faces \
-             (give both flags to run without a model)",
+            "reading the model config in {} for the default --max-faces \
+             (give the flag to run without a model)",
             args.model.display()
         )
     })?;
-    Ok((args.points.unwrap_or(cfg.num_points), args.max_faces.unwrap_or(cfg.max_faces)))
+    Ok(cfg.max_faces)
 }

@@ -21,7 +21,7 @@ use anyhow::Context;
 use candle_core::Device;
 use meshstream::candidates::MAX_CANDIDATES;
 use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
-use meshstream::mesh::{Mesh, Normalization, ReadLimits, encoder_points, read_mesh_file};
+use meshstream::mesh::{Mesh, Normalization, ReadLimits, read_mesh_file};
 
 /// Writes one line of results to stdout. A reader that has gone away (`meshstream eval | head`)
 /// is not an error, as for other Unix tools: the rest of the output has nowhere to go.
@@ -40,16 +40,13 @@ pub fn load_mesh(path: &Path) -> anyhow::Result<Mesh> {
         .with_context(|| format!("reading {}", path.display()))
 }
 
-/// What a reconstruction sees of an input file: `n` points with normals taken from it as
-/// [`encoder_points`] does, in its normalized frame, and the normalization that puts a result
-/// back in the file's coordinates. `reconstruct` and `baseline` share it so that the model and
-/// the baselines get the same points.
-pub fn input_points(path: &Path, n: usize, seed: u64) -> anyhow::Result<(Mesh, Normalization)> {
+/// An input file in its normalized frame, and the normalization that puts a result back in
+/// the file's coordinates. `reconstruct` and `baseline` draw their points from it alike (see
+/// [`meshstream::mesh::input_clouds`]), so that the model and the baselines see the same.
+pub fn normalized_input(path: &Path) -> anyhow::Result<(Mesh, Normalization)> {
     let input = load_mesh(path)?;
     let normalization = Normalization::fit(&input.vertices).context("normalizing the input")?;
-    let cloud = encoder_points(&normalization.apply_mesh(&input), n, seed)
-        .context("preparing the input points")?;
-    Ok((cloud, normalization))
+    Ok((normalization.apply_mesh(&input), normalization))
 }
 
 /// Where a model folder keeps its image model (the diffusion transformer), if it has one.
@@ -85,6 +82,15 @@ pub fn load_image_model(
 /// The parser of a `--candidates` flag: 1 to `MAX_CANDIDATES`.
 pub fn candidate_count() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::new().range(1..=MAX_CANDIDATES as u64)
+}
+
+/// The most points a command draws from its input: a million is 64 times a reconstruction's
+/// default reference, and the Poisson baseline's time and memory grow with the count.
+pub const MAX_INPUT_POINTS: usize = 1 << 20;
+
+/// The parser of a flag that counts input points: 1 to [`MAX_INPUT_POINTS`].
+pub fn point_count() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::new().range(1..=MAX_INPUT_POINTS as u64)
 }
 
 /// A table printed as Markdown, so figures paste straight into notes and model cards.

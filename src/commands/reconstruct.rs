@@ -4,11 +4,11 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::DEFAULT_CANDIDATES;
-use meshstream::mesh::FitOptions;
+use meshstream::mesh::{FitOptions, REFERENCE_POINTS, input_clouds};
 use meshstream::model::{checkpoint, parse_device};
 
 use super::decode::{DecodeArgs, FromPoints, decode_to_file};
-use super::{candidate_count, input_points};
+use super::{candidate_count, normalized_input, point_count};
 
 #[derive(Args)]
 pub struct ReconstructArgs {
@@ -37,6 +37,11 @@ pub struct ReconstructArgs {
     /// The furthest fitting may move a corner, in units of half the input's longest side.
     #[arg(long, default_value_t = FitOptions::default().max_shift)]
     fit_max_shift: f32,
+    /// The most input points the candidates are judged and the corners fitted against (the
+    /// encoder takes the model's num_points of them): a mesh's surface is sampled this often,
+    /// a larger cloud subsampled.
+    #[arg(long, default_value_t = REFERENCE_POINTS, value_parser = point_count())]
+    reference_points: usize,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -44,15 +49,17 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let model = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let cfg = model.config().clone();
-    let (cloud, normalization) = input_points(&args.input, cfg.num_points, args.seed)?;
+    let (input, normalization) = normalized_input(&args.input)?;
+    let clouds = input_clouds(&input, cfg.num_points, args.reference_points, args.seed)
+        .context("preparing the input points")?;
     let start = Instant::now();
-    let latents = model.encode_point_cloud(&cloud)?;
+    let latents = model.encode_point_cloud(&clouds.encoder)?;
     let fit = FitOptions {
         rounds: args.fit_rounds,
         max_shift: args.fit_max_shift,
         ..FitOptions::default()
     };
-    let from_points = FromPoints { cloud: &cloud, candidates: args.candidates, fit };
+    let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, fit };
     decode_to_file(
         &model,
         &latents,

@@ -18,7 +18,7 @@ use super::{
 };
 
 /// Submits `n` candidates of `request` (a points request, checked by the caller) and returns
-/// the stream of the one that fits the input points best. Refused as a whole when any
+/// the stream of the one that fits the input's reference points best. Refused as a whole when any
 /// candidate is (the others are then cancelled). Needs a tokio runtime for its task.
 pub(super) fn submit(
     engine: &Engine,
@@ -32,11 +32,7 @@ pub(super) fn submit(
     };
     let runtime = tokio::runtime::Handle::try_current()
         .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
-    let cloud = Mesh {
-        vertices: prepared.points.clone(),
-        faces: Vec::new(),
-        normals: Some(prepared.normals.clone()),
-    };
+    let cloud = prepared.reference.clone();
     let fit = match request.options.fit_rounds.unwrap_or(0) {
         0 => None,
         rounds => Some(FitOptions { rounds, ..FitOptions::default() }),

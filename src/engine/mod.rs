@@ -243,6 +243,11 @@ impl Engine {
                         cfg.num_points, cfg.num_latents
                     )));
                 }
+                if p.reference.vertices.is_empty() {
+                    return Err(EngineError::InvalidInput(
+                        "prepared points have no reference points to judge candidates by".into(),
+                    ));
+                }
             }
             Conditioning::Image(prompt) => self.check_image(prompt)?,
         }

@@ -1,22 +1,27 @@
 //! What a client asks for, prepared for the scheduler: the conditioning (the request's kind)
 //! and the decoding options.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::diffusion::PreparedImage;
-use crate::mesh::{Mesh, Normalization, encoder_points, farthest_point_sampling};
+use crate::mesh::{Mesh, Normalization, REFERENCE_POINTS, farthest_point_sampling, input_clouds};
 use crate::model::{FaceConfig, SamplingParams};
 
 use super::EngineError;
 
-/// The encoder's input for one request, in the normalized frame, and the normalization that
-/// takes the result back to the caller's coordinates.
+/// The encoder's input for one request, in the normalized frame, the denser reference its
+/// candidates are judged and fitted against, and the normalization that takes the result
+/// back to the caller's coordinates.
 #[derive(Debug, Clone)]
 pub struct PreparedPoints {
     pub points: Vec<[f32; 3]>,
     pub normals: Vec<[f32; 3]>,
     /// Farthest-point-sampled indices into `points`: the encoder's queries.
     pub queries: Vec<u32>,
+    /// Up to [`REFERENCE_POINTS`] points with normals (see [`input_clouds`]); shared, as
+    /// every candidate of a request carries it.
+    pub reference: Arc<Mesh>,
     pub normalization: Normalization,
 }
 
@@ -29,7 +34,9 @@ impl PreparedPoints {
         }
         input.validate()?;
         let normalization = Normalization::fit(&input.vertices)?;
-        let cloud = encoder_points(&normalization.apply_mesh(input), cfg.num_points, seed)?;
+        let clouds =
+            input_clouds(&normalization.apply_mesh(input), cfg.num_points, REFERENCE_POINTS, seed)?;
+        let cloud = clouds.encoder;
         let normals = cloud.normals.unwrap_or_default();
         if normals.len() != cloud.vertices.len()
             || normals.iter().chain(&cloud.vertices).flatten().any(|c| !c.is_finite())
@@ -42,7 +49,13 @@ impl PreparedPoints {
             .into_iter()
             .map(|i| i as u32)
             .collect();
-        Ok(Self { points: cloud.vertices, normals, queries, normalization })
+        Ok(Self {
+            points: cloud.vertices,
+            normals,
+            queries,
+            reference: Arc::new(clouds.reference),
+            normalization,
+        })
     }
 }
 
@@ -104,4 +117,27 @@ pub struct Request {
     pub options: DecodeOptions,
     /// The request fails with `DeadlineExceeded` if it is not finished by then.
     pub deadline: Option<Instant>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+    use crate::mesh::sample_surface;
+
+    #[test]
+    fn a_mesh_is_sampled_for_the_reference_and_a_small_cloud_is_its_own() {
+        let cfg = FaceConfig::tiny();
+        let boxy = cuboid([2.0, 1.0, 0.5]).translated([10.0, 0.0, 0.0]);
+        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, 0).unwrap();
+        assert_eq!(prepared.points.len(), cfg.num_points);
+        assert_eq!(prepared.reference.vertices.len(), REFERENCE_POINTS);
+        // In the normalized frame, as the encoder's points are.
+        let (lo, hi) = prepared.reference.bounds().unwrap();
+        assert!(lo.iter().chain(&hi).all(|c| c.abs() <= 1.0 + 1e-5), "{lo:?} {hi:?}");
+
+        let cloud = Mesh { faces: Vec::new(), ..sample_surface(&boxy, 3000, 1).unwrap() };
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 0).unwrap();
+        assert_eq!(prepared.reference.vertices, prepared.normalization.apply_mesh(&cloud).vertices);
+    }
 }

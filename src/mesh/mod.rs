@@ -28,7 +28,10 @@ pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file}
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
 pub use normalize::Normalization;
-pub use points::{NORMAL_NEIGHBOURS, encoder_points, estimate_normals};
+pub use points::{
+    InputClouds, NORMAL_NEIGHBOURS, REFERENCE_POINTS, estimate_normals, input_clouds,
+    reference_points,
+};
 pub use sample::sample_surface;
 
 /// What welds two corners: their exact position. Adding 0.0 turns -0.0 into 0.0, so that
