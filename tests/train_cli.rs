@@ -183,11 +183,17 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
     assert!(String::from_utf8_lossy(&output.stderr).contains("--resume"));
 
     // Each bad argument is refused with a message that names what is wrong.
-    let refusals: [(&[&str], &str); 5] = [
+    let refusals: [(&[&str], &str); 7] = [
         (&["--curriculum", "ten:5"], "ten:5"),
         (&["--any-angle-share", "1.5"], "between 0 and 1"),
         // Freezing needs trained weights to keep.
         (&["--freeze-encoder"], "--init"),
+        (&["--encoder-lr-scale", "0"], "not in (0, 1]"),
+        // A frozen encoder has no learning rate to scale.
+        (
+            &["--init", "models/default", "--freeze-encoder", "--encoder-lr-scale", "0.5"],
+            "cannot be used with",
+        ),
         (&["--procedural-weights", "blob=2"], "unknown shape kind 'blob'"),
         (&["--procedural-weights", "box=2000"], "at most 1000"),
     ];

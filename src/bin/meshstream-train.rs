@@ -109,6 +109,11 @@ struct AeArgs {
     /// step skips the encoder's backward pass.
     #[arg(long, requires = "init")]
     freeze_encoder: bool,
+    /// The encoder's learning rate as a share of the schedule's, in (0, 1]: below 1 a
+    /// fine-tune moves the latent space less than the decoder (an image model trained on it
+    /// still needs retraining once it moves at all).
+    #[arg(long, default_value_t = 1.0, value_parser = parse_rate_share, conflicts_with = "freeze_encoder")]
+    encoder_lr_scale: f64,
     /// Model preset: tiny, base or large.
     #[arg(long, default_value = "tiny")]
     preset: String,
@@ -631,6 +636,7 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         } else {
             EncoderTraining::Trained
         },
+        encoder_lr_scale: args.encoder_lr_scale,
         model,
     })
 }
@@ -640,6 +646,15 @@ fn parse_share(text: &str) -> anyhow::Result<f32> {
     let value: f32 = text.trim().parse().with_context(|| format!("{text:?} is not a number"))?;
     if !(0.0..=1.0).contains(&value) {
         bail!("{value} is not between 0 and 1");
+    }
+    Ok(value)
+}
+
+/// A share of a learning rate: a number in (0, 1].
+fn parse_rate_share(text: &str) -> anyhow::Result<f64> {
+    let value: f64 = text.trim().parse().with_context(|| format!("{text:?} is not a number"))?;
+    if !(value > 0.0 && value <= 1.0) {
+        bail!("{value} is not in (0, 1]");
     }
     Ok(value)
 }

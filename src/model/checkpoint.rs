@@ -9,7 +9,7 @@ use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::{Init, VarBuilder, VarMap};
 
-use super::{FaceConfig, FaceModel, ModelError, Result};
+use super::{ENCODER_SCOPE, FaceConfig, FaceModel, ModelError, Result};
 
 pub const CONFIG_FILE: &str = "config.json";
 pub const WEIGHTS_FILE: &str = "model.safetensors";
@@ -102,11 +102,12 @@ fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String,
 /// since an f16 export is bit for bit that export).
 pub fn encoder_fingerprint(dir: &Path) -> Result<String> {
     let (_, tensors) = load_tensors(dir, &Device::Cpu)?;
-    let mut names: Vec<&String> = tensors.keys().filter(|n| n.starts_with("encoder.")).collect();
+    let prefix = format!("{ENCODER_SCOPE}.");
+    let mut names: Vec<&String> = tensors.keys().filter(|n| n.starts_with(&prefix)).collect();
     if names.is_empty() {
         return Err(ModelError::MissingTensor {
             path: dir.join(WEIGHTS_FILE),
-            name: "encoder.*".into(),
+            name: format!("{prefix}*"),
         });
     }
     names.sort();

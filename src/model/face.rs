@@ -57,6 +57,9 @@ impl SequenceState {
     }
 }
 
+/// The scope of the shape encoder's weights: their names start with it and a dot.
+pub const ENCODER_SCOPE: &str = "encoder";
+
 /// Whether a training pass updates the encoder.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -99,7 +102,7 @@ impl FaceModel {
         let dec = vb.pp("decoder");
         Ok(Self {
             cfg: cfg.clone(),
-            encoder: ShapeEncoder::new(cfg, vb.pp("encoder"))?,
+            encoder: ShapeEncoder::new(cfg, vb.pp(ENCODER_SCOPE))?,
             coords: CoordEmbedding::new(cfg, dec.pp("coord_embed"))?,
             pooling: FacePooling::new(cfg, dec.pp("face_pooling"))?,
             start: dec.get_with_hints(

@@ -69,7 +69,7 @@ pub use constraints::{allowed_values, completion_exists, is_valid_next};
 pub use device::parse_device;
 pub use encoder::EncoderOutput;
 pub use error::ModelError;
-pub use face::{EncoderTraining, FaceModel, SequenceState, TrainLoss};
+pub use face::{ENCODER_SCOPE, EncoderTraining, FaceModel, SequenceState, TrainLoss};
 pub use generate::{
     DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceStream, FinishReason, GenerateOptions, Generation,
     MAX_FACE_BEAM, StepEvent, generate, step_generations,

@@ -50,6 +50,8 @@ struct Param {
     name: String,
     var: Var,
     rule: Rule,
+    /// This parameter's learning rate as a share of the schedule's.
+    lr_scale: f64,
     /// Muon: the momentum buffer. AdamW: the first moment.
     m: Tensor,
     /// AdamW: the second moment (unused by Muon).
@@ -95,9 +97,22 @@ impl Optimizer {
                 v: var.zeros_like()?,
                 var,
                 rule,
+                lr_scale: 1.0,
             });
         }
         Ok(Self { params, cfg, step: 0 })
+    }
+
+    /// Updates the parameters whose names start with `prefix` at `scale` times the learning
+    /// rate (and so their weight decay too, which is decoupled). Returns how many values that
+    /// covers, so that a prefix matching nothing is noticed.
+    pub fn scale_learning_rate(&mut self, prefix: &str, scale: f64) -> usize {
+        let mut covered = 0;
+        for p in self.params.iter_mut().filter(|p| p.name.starts_with(prefix)) {
+            p.lr_scale = scale;
+            covered += p.var.elem_count();
+        }
+        covered
     }
 
     pub fn steps_taken(&self) -> u64 {
@@ -127,6 +142,7 @@ impl Optimizer {
         for p in &mut self.params {
             let Some(g) = grads.get(p.var.as_tensor()) else { continue };
             let w = p.var.as_tensor();
+            let lr = lr * p.lr_scale;
             match p.rule {
                 Rule::Muon => {
                     // Nesterov momentum, then orthogonalize the update.
@@ -334,5 +350,27 @@ mod tests {
         let mut broken = state.clone();
         broken.remove("m.dec.bias");
         assert!(other.load_state(&broken).unwrap_err().to_string().contains("m.dec.bias"));
+    }
+
+    #[test]
+    fn a_scaled_prefix_moves_by_its_share_of_the_step() {
+        let dev = Device::Cpu;
+        let varmap = VarMap::new();
+        let vb = candle_nn::VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+        let init = candle_nn::Init::Const(1.0);
+        let enc = vb.get_with_hints(4, "encoder.bias", init).unwrap();
+        let dec = vb.get_with_hints(4, "decoder.bias", init).unwrap();
+        let mut opt = Optimizer::new(&varmap, OptimConfig::default(), default_rule).unwrap();
+        assert_eq!(opt.scale_learning_rate("encoder.", 0.25), 4);
+        assert_eq!(opt.scale_learning_rate("nothing.", 0.5), 0);
+        let grads = (enc.sum_all().unwrap() + dec.sum_all().unwrap()).unwrap().backward().unwrap();
+        opt.step(&grads, 0.1).unwrap();
+        let moved = |name: &str| {
+            let v = varmap.data().lock().unwrap()[name].as_tensor().to_vec1::<f32>().unwrap();
+            1.0 - v[0]
+        };
+        // AdamW's first step moves every value by the learning rate (no decay on biases).
+        assert!((moved("decoder.bias") - 0.1).abs() < 1e-4, "{}", moved("decoder.bias"));
+        assert!((moved("encoder.bias") - 0.025).abs() < 1e-4, "{}", moved("encoder.bias"));
     }
 }

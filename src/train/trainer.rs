@@ -12,7 +12,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::metrics::MetricOptions;
 use crate::model::{
-    EncoderTraining, FaceConfig, FaceModel, TrainBatch, checkpoint as model_checkpoint,
+    ENCODER_SCOPE, EncoderTraining, FaceConfig, FaceModel, TrainBatch,
+    checkpoint as model_checkpoint,
 };
 use crate::tokenize::Quantizer;
 
@@ -48,6 +49,14 @@ pub struct TrainConfig {
     /// Frozen: only the decoder and head learn (runs from before the option: trained).
     #[serde(default)]
     pub encoder: EncoderTraining,
+    /// A trained encoder's learning rate as a share of the schedule's: below 1 its latent
+    /// space moves less than the decoder (runs from before the option: 1).
+    #[serde(default = "full_rate")]
+    pub encoder_lr_scale: f64,
+}
+
+fn full_rate() -> f64 {
+    1.0
 }
 
 pub struct Trainer {
@@ -119,7 +128,18 @@ impl Trainer {
         let varmap = VarMap::new();
         let model =
             FaceModel::new(&cfg.model, VarBuilder::from_varmap(&varmap, DType::F32, &device))?;
-        let optimizer = Optimizer::new(&varmap, cfg.optim, default_rule)?;
+        let mut optimizer = Optimizer::new(&varmap, cfg.optim, default_rule)?;
+        if cfg.encoder_lr_scale != 1.0 {
+            if cfg.encoder == EncoderTraining::Frozen
+                || !(cfg.encoder_lr_scale > 0.0 && cfg.encoder_lr_scale <= 1.0)
+            {
+                return Err(TrainError::Config(format!(
+                    "an encoder learning-rate scale of {} needs a trained encoder and a share in (0, 1]",
+                    cfg.encoder_lr_scale
+                )));
+            }
+            optimizer.scale_learning_rate(&format!("{ENCODER_SCOPE}."), cfg.encoder_lr_scale);
+        }
         let q = Quantizer::new(
             u16::try_from(cfg.model.quant_levels)
                 .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
@@ -170,6 +190,9 @@ impl Trainer {
             }
         };
         match self.cfg.encoder {
+            EncoderTraining::Trained if self.cfg.encoder_lr_scale != 1.0 => {
+                format!("{data}; the encoder learns at {} x the lr", self.cfg.encoder_lr_scale)
+            }
             EncoderTraining::Trained => data,
             EncoderTraining::Frozen => format!("{data}; the encoder is frozen"),
         }
