@@ -248,7 +248,13 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
 
 #[test]
 fn serve_refuses_candidate_and_fitting_defaults_out_of_range() {
-    for (flag, n) in [("--candidates", "0"), ("--candidates", "17"), ("--fit-rounds", "201")] {
+    for (flag, n) in [
+        ("--candidates", "0"),
+        ("--candidates", "17"),
+        ("--fit-rounds", "201"),
+        ("--reference-points", "0"),
+        ("--reference-points", "2000000"),
+    ] {
         let o = meshstream(&["serve", flag, n, "--model", "/no/model"]);
         assert!(!o.status.success());
         let err = String::from_utf8_lossy(&o.stderr);

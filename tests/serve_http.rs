@@ -167,10 +167,12 @@ async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
-    let server = Server::start(&["--candidates", "1", "--fit-rounds", "7"]);
+    let server =
+        Server::start(&["--candidates", "1", "--fit-rounds", "7", "--reference-points", "500"]);
     let c = client();
     let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["defaults"]["fit_rounds"], json!({"whole_mesh": 7, "stream": 0}));
+    assert_eq!(info["defaults"]["reference_points"], 500);
     let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
     let fitted = read(&reconstruct_glb(&server, &points_json(&shape(), json!({}))).await.1);
     let as_decoded = json!({"fit_rounds": 0});

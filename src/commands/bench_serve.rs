@@ -10,7 +10,7 @@ use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{FitOptions, ReadLimits, primitives, sample_surface};
+use meshstream::mesh::{FitOptions, REFERENCE_POINTS, ReadLimits, primitives, sample_surface};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
@@ -69,7 +69,11 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     let serve_config = ServeConfig {
         http_addr: loopback,
         grpc_addr: loopback,
-        limits: InputLimits { max_points: 1 << 20, read: ReadLimits::default() },
+        limits: InputLimits {
+            max_points: 1 << 20,
+            reference_points: REFERENCE_POINTS,
+            read: ReadLimits::default(),
+        },
         max_body_bytes: 64 << 20,
         whole_mesh_candidates: DEFAULT_CANDIDATES,
         whole_mesh_fit_rounds: FitOptions::default().rounds,

@@ -7,14 +7,14 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, ReadLimits};
+use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
 use tracing_subscriber::EnvFilter;
 
 use super::out;
 
-use super::{candidate_count, image_model_dir, load_image_model};
+use super::{candidate_count, image_model_dir, load_image_model, point_count};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum LogFormat {
@@ -85,6 +85,11 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_CANDIDATES", default_value_t = DEFAULT_CANDIDATES,
           value_parser = candidate_count())]
     candidates: usize,
+    /// The most input points a reconstruction's candidates are judged and its corners fitted
+    /// against (see `reconstruct --reference-points`): fewer make fitting cheaper and coarser.
+    #[arg(long, env = "MESHSTREAM_REFERENCE_POINTS", default_value_t = REFERENCE_POINTS,
+          value_parser = point_count())]
+    reference_points: usize,
     /// Fitting rounds of a reconstruction answered with a whole mesh that does not say (see
     /// `reconstruct --fit-rounds`; at most 200); streamed answers take 0 unless they say.
     #[arg(long, env = "MESHSTREAM_FIT_ROUNDS", default_value_t = FitOptions::default().rounds as u16,
@@ -153,6 +158,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         grpc_addr: args.grpc_addr,
         limits: InputLimits {
             max_points: args.max_points,
+            reference_points: args.reference_points,
             read: ReadLimits {
                 max_bytes: args.max_body_bytes as u64,
                 max_vertices: args.max_points,

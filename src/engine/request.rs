@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::diffusion::PreparedImage;
-use crate::mesh::{Mesh, Normalization, REFERENCE_POINTS, farthest_point_sampling, input_clouds};
+use crate::mesh::{Mesh, Normalization, farthest_point_sampling, input_clouds};
 use crate::model::{FaceConfig, SamplingParams};
 
 use super::EngineError;
@@ -19,23 +19,30 @@ pub struct PreparedPoints {
     pub normals: Vec<[f32; 3]>,
     /// Farthest-point-sampled indices into `points`: the encoder's queries.
     pub queries: Vec<u32>,
-    /// Up to [`REFERENCE_POINTS`] points with normals (see [`input_clouds`]); shared, as
-    /// every candidate of a request carries it.
+    /// Up to [`crate::mesh::REFERENCE_POINTS`] points with normals by default (see [`input_clouds`]);
+    /// shared, as every candidate of a request carries it.
     pub reference: Arc<Mesh>,
     pub normalization: Normalization,
 }
 
 impl PreparedPoints {
     /// From a point cloud (normals kept, or estimated when absent) or a mesh (its surface is
-    /// sampled), in the caller's own coordinates. CPU work: run it off the async runtime.
-    pub fn from_mesh(input: &Mesh, cfg: &FaceConfig, seed: u64) -> Result<Self, EngineError> {
+    /// sampled), in the caller's own coordinates, with up to `reference` points to judge and
+    /// fit candidates against ([`crate::mesh::REFERENCE_POINTS`] unless a server is told otherwise). CPU
+    /// work: run it off the async runtime.
+    pub fn from_mesh(
+        input: &Mesh,
+        cfg: &FaceConfig,
+        reference: usize,
+        seed: u64,
+    ) -> Result<Self, EngineError> {
         if input.vertices.is_empty() {
             return Err(EngineError::InvalidInput("the input has no points".into()));
         }
         input.validate()?;
         let normalization = Normalization::fit(&input.vertices)?;
         let clouds =
-            input_clouds(&normalization.apply_mesh(input), cfg.num_points, REFERENCE_POINTS, seed)?;
+            input_clouds(&normalization.apply_mesh(input), cfg.num_points, reference, seed)?;
         let cloud = clouds.encoder;
         let normals = cloud.normals.unwrap_or_default();
         if normals.len() != cloud.vertices.len()
@@ -122,6 +129,7 @@ pub struct Request {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::REFERENCE_POINTS;
     use crate::mesh::primitives::cuboid;
     use crate::mesh::sample_surface;
 
@@ -129,7 +137,7 @@ mod tests {
     fn a_mesh_is_sampled_for_the_reference_and_a_small_cloud_is_its_own() {
         let cfg = FaceConfig::tiny();
         let boxy = cuboid([2.0, 1.0, 0.5]).translated([10.0, 0.0, 0.0]);
-        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, 0).unwrap();
+        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, REFERENCE_POINTS, 0).unwrap();
         assert_eq!(prepared.points.len(), cfg.num_points);
         assert_eq!(prepared.reference.vertices.len(), REFERENCE_POINTS);
         // In the normalized frame, as the encoder's points are.
@@ -137,7 +145,10 @@ mod tests {
         assert!(lo.iter().chain(&hi).all(|c| c.abs() <= 1.0 + 1e-5), "{lo:?} {hi:?}");
 
         let cloud = Mesh { faces: Vec::new(), ..sample_surface(&boxy, 3000, 1).unwrap() };
-        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 0).unwrap();
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, REFERENCE_POINTS, 0).unwrap();
         assert_eq!(prepared.reference.vertices, prepared.normalization.apply_mesh(&cloud).vertices);
+        // A server told to judge against fewer takes a subset.
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 2000, 0).unwrap();
+        assert_eq!(prepared.reference.vertices.len(), 2000);
     }
 }

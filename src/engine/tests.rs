@@ -3,8 +3,8 @@ use std::time::{Duration, Instant};
 
 use super::*;
 use crate::candidates::{MAX_CANDIDATES, candidate_options, input_distance};
-use crate::mesh::Mesh;
 use crate::mesh::primitives::uv_sphere;
+use crate::mesh::{Mesh, REFERENCE_POINTS};
 use crate::model::testing::random_model;
 use crate::model::{GenerateOptions, Generation, generate, step_generations};
 use crate::tokenize::FaceToken;
@@ -24,7 +24,7 @@ fn request(model: &FaceModel, id: usize, max_faces: usize) -> Request {
     Request {
         id: format!("r{id}"),
         conditioning: Conditioning::Points(
-            PreparedPoints::from_mesh(&shape, model.config(), id as u64).unwrap(),
+            PreparedPoints::from_mesh(&shape, model.config(), REFERENCE_POINTS, id as u64).unwrap(),
         ),
         options: DecodeOptions { max_faces: Some(max_faces), ..Default::default() },
         deadline: None,

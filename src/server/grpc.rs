@@ -181,7 +181,7 @@ impl GrpcService {
                 None => return Err(ApiError::invalid("give points or a file")),
             };
             let parsed = options.checked(mesh)?;
-            let prepared = prepare(&engine, &parsed.input, parsed.seed)?;
+            let prepared = prepare(&engine, &parsed.input, &limits, parsed.seed)?;
             Ok((parsed, prepared))
         })
         .await

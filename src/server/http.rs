@@ -130,7 +130,7 @@ async fn reconstruct(
                 parsed.decode.candidates.get_or_insert(candidates);
                 parsed.decode.fit_rounds.get_or_insert(fit_rounds);
             }
-            let conditioning = prepare(&engine, &parsed.input, parsed.seed)?;
+            let conditioning = prepare(&engine, &parsed.input, &limits, parsed.seed)?;
             Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
         })
         .await

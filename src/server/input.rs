@@ -76,6 +76,9 @@ pub struct ParsedRequest {
 #[derive(Debug, Clone, Copy)]
 pub struct InputLimits {
     pub max_points: usize,
+    /// The most input points a reconstruction's candidates are judged and fitted against
+    /// (the encoder takes the model's `num_points` of them).
+    pub reference_points: usize,
     pub read: ReadLimits,
 }
 
@@ -288,7 +291,7 @@ mod tests {
     use axum::http::HeaderValue;
 
     fn limits() -> InputLimits {
-        InputLimits { max_points: 100, read: ReadLimits::default() }
+        InputLimits { max_points: 100, reference_points: 100, read: ReadLimits::default() }
     }
 
     fn json(body: &str) -> Result<ParsedRequest, ApiError> {

@@ -109,9 +109,16 @@ pub(crate) fn no_image_model() -> ApiError {
     ))
 }
 
-/// The encoder's input for a mesh or point cloud in the caller's coordinates. CPU work.
-pub(crate) fn prepare(engine: &Engine, input: &Mesh, seed: u64) -> Result<Conditioning, ApiError> {
-    let points = PreparedPoints::from_mesh(input, engine.model_config(), seed)?;
+/// The encoder's input for a mesh or point cloud in the caller's coordinates, and the
+/// reference points its candidates are judged against. CPU work.
+pub(crate) fn prepare(
+    engine: &Engine,
+    input: &Mesh,
+    limits: &InputLimits,
+    seed: u64,
+) -> Result<Conditioning, ApiError> {
+    let points =
+        PreparedPoints::from_mesh(input, engine.model_config(), limits.reference_points, seed)?;
     Ok(Conditioning::Points(points))
 }
 
@@ -136,6 +143,7 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
         "defaults": {
             "candidates": { "whole_mesh": cfg.whole_mesh_candidates, "stream": 1 },
             "fit_rounds": { "whole_mesh": cfg.whole_mesh_fit_rounds, "stream": 0 },
+            "reference_points": cfg.limits.reference_points,
             "temperature": DEFAULT_TEMPERATURE,
         },
         "limits": {
