@@ -138,7 +138,10 @@ impl Trainer {
                     cfg.encoder_lr_scale
                 )));
             }
-            optimizer.scale_learning_rate(&format!("{ENCODER_SCOPE}."), cfg.encoder_lr_scale);
+            let prefix = format!("{ENCODER_SCOPE}.");
+            if optimizer.scale_learning_rate(&prefix, cfg.encoder_lr_scale) == 0 {
+                return Err(TrainError::Config(format!("the model has no {prefix}* weights")));
+            }
         }
         let q = Quantizer::new(
             u16::try_from(cfg.model.quant_levels)
