@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use common::{Server, points_json, shape};
 use futures_util::StreamExt;
 use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
+use meshstream::metrics::point_set_distances;
 use serde_json::{Value, json};
 
 fn client() -> reqwest::Client {
@@ -87,11 +88,7 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
     let step = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f32, f32::max) / 128.0;
     // Mean distance from a mesh's corners to their nearest input point, in grid steps.
     let off_the_points = |corners: &[[f32; 3]]| {
-        let nearest = |v: &[f32; 3]| {
-            let squared = cloud.vertices.iter().map(|p| (0..3).map(|k| (p[k] - v[k]).powi(2)));
-            squared.map(Iterator::sum::<f32>).fold(f32::MAX, f32::min).sqrt()
-        };
-        corners.iter().map(nearest).sum::<f32>() / corners.len() as f32 / step
+        point_set_distances(corners, &cloud.vertices).accuracy / f64::from(step)
     };
     for fit_rounds in [0, 40] {
         let options = json!({"max_faces": 60, "fit_rounds": fit_rounds});
