@@ -104,13 +104,16 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert!(before.keys().filter(|n| n.starts_with("encoder.")).all(unchanged));
     assert!(!before.keys().filter(|n| n.starts_with("decoder.layers.")).any(unchanged));
 
-    // One run straight through, and one stopped halfway and resumed.
+    // One run straight through, and one stopped halfway and resumed, both keeping a weight
+    // average.
+    let average = ["--weight-average", "0.9"];
     let straight = tmp.path().join("straight");
-    run(&straight, data.as_deref(), 16, 16, Start::Init(&init));
+    run_with(&straight, data.as_deref(), 16, 16, Start::Init(&init), &average);
     let resumed = tmp.path().join("resumed");
-    run(&resumed, data.as_deref(), 16, 8, Start::Init(&init));
+    run_with(&resumed, data.as_deref(), 16, 8, Start::Init(&init), &average);
     assert!(resumed.join("checkpoint/model.safetensors").is_file());
     assert!(resumed.join("checkpoint/optimizer.safetensors").is_file());
+    assert!(resumed.join("checkpoint/average/model.safetensors").is_file());
     run(&resumed, None, 16, 16, Start::Resume);
 
     let a = step_losses(&straight.join("log.jsonl"));
@@ -120,6 +123,24 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     // Same data, weights, optimizer state and schedule: the resumed run continues exactly.
     for ((step, la), (_, lb)) in a.iter().zip(&b) {
         assert!((la - lb).abs() <= 1e-3 * la.abs(), "step {step}: {la} straight vs {lb} resumed");
+    }
+    // The average resumes too, and it is not the raw weights.
+    let (raw, straight_average, resumed_average) = (
+        weights(&straight.join("checkpoint")),
+        weights(&straight.join("checkpoint/average")),
+        weights(&resumed.join("checkpoint/average")),
+    );
+    let largest_difference = |a: &candle_core::Tensor, b: &candle_core::Tensor| {
+        (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
+    };
+    let name = "decoder.layers.0.mlp.fc1.weight";
+    let spread = largest_difference(&raw[name], &straight_average[name]);
+    let off = largest_difference(&resumed_average[name], &straight_average[name]);
+    // (A resume that restarted the average at the raw weights would be 7% of it off.)
+    assert!(off <= 1e-3 * spread, "resumed average {off} off, {spread} from the raw weights");
+    for (name, t) in &straight_average {
+        let off = largest_difference(t, &resumed_average[name]);
+        assert!(off < 1e-3, "{name}: the resumed average is {off} off");
     }
     let first: f64 = a[..4].iter().map(|s| s.1).sum::<f64>() / 4.0;
     let last: f64 = a[12..].iter().map(|s| s.1).sum::<f64>() / 4.0;

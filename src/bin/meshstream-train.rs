@@ -13,7 +13,7 @@ use meshstream::model::{EncoderTraining, FaceConfig, parse_device};
 use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
-use meshstream::train::checkpoint::{RunDir, export};
+use meshstream::train::checkpoint::{RunDir, average_dir, export};
 use meshstream::train::dit::DitTrainConfig;
 use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
 use meshstream::train::dit::evaluate::DitEvalOptions;
@@ -45,7 +45,8 @@ enum Command {
     Dit(Box<DitArgs>),
     /// Write just what inference needs (config.json + model.safetensors) from a run or checkpoint.
     Export {
-        /// A run folder (its best weights are exported), or a checkpoint or model folder.
+        /// A run folder (its best weights, else its checkpoint's weight average, else the
+        /// checkpoint itself), or a checkpoint or model folder.
         from: PathBuf,
         /// The model folder to write, e.g. models/mine.
         #[arg(short, long)]
@@ -114,6 +115,11 @@ struct AeArgs {
     /// still needs retraining once it moves at all).
     #[arg(long, default_value_t = 1.0, value_parser = parse_rate_share, conflicts_with = "freeze_encoder")]
     encoder_lr_scale: f64,
+    /// Keep an exponential moving average of the weights with this decay (e.g. 0.998, about
+    /// the last 500 steps): evaluations, best/ and exports use it; the checkpoint keeps it in
+    /// checkpoint/average/ beside the raw weights that training continues from.
+    #[arg(long)]
+    weight_average: Option<f64>,
     /// Model preset: tiny, base or large.
     #[arg(long, default_value = "tiny")]
     preset: String,
@@ -450,6 +456,8 @@ fn model_folder(from: &Path) -> PathBuf {
     let run = RunDir(from.to_path_buf());
     if run.best().is_dir() {
         run.best()
+    } else if average_dir(&run.checkpoint()).is_dir() {
+        average_dir(&run.checkpoint())
     } else if run.checkpoint().is_dir() {
         run.checkpoint()
     } else {
@@ -637,6 +645,7 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
             EncoderTraining::Trained
         },
         encoder_lr_scale: args.encoder_lr_scale,
+        weight_average: args.weight_average,
         model,
     })
 }

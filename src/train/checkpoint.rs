@@ -15,6 +15,13 @@ use super::optim::Optimizer;
 
 const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 const STATE_FILE: &str = "state.json";
+/// A checkpoint's subfolder with the run's weight average, a model folder of its own.
+const AVERAGE_DIR: &str = "average";
+
+/// Where a checkpoint written by [`save`] keeps the run's weight average, when it has one.
+pub fn average_dir(checkpoint: &Path) -> PathBuf {
+    checkpoint.join(AVERAGE_DIR)
+}
 
 /// Where a run keeps its files.
 #[derive(Debug, Clone)]
@@ -69,19 +76,24 @@ impl TrainState {
 }
 
 /// Writes a checkpoint into `dir`: to a sibling temporary folder first, then renamed, so an
-/// interrupted save never leaves a half-written checkpoint behind.
+/// interrupted save never leaves a half-written checkpoint behind. A run's weight average,
+/// when it keeps one, goes into [`average_dir`].
 pub fn save(
     dir: &Path,
     cfg: &impl Serialize,
     varmap: &VarMap,
     optimizer: &Optimizer,
     state: &TrainState,
+    average: Option<&HashMap<String, Tensor>>,
 ) -> Result<(), TrainError> {
     let tmp = dir.with_extension("tmp");
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(TrainError::io(&tmp))?;
     }
     model_checkpoint::save_checkpoint(&tmp, cfg, varmap)?;
+    if let Some(average) = average {
+        model_checkpoint::write_model_dir(&average_dir(&tmp), cfg, average)?;
+    }
     candle_core::safetensors::save(&optimizer.state()?, tmp.join(OPTIMIZER_FILE))?;
     let state_path = tmp.join(STATE_FILE);
     let json = serde_json::to_string_pretty(state).map_err(|e| TrainError::Json(e.to_string()))?;
@@ -113,28 +125,41 @@ pub fn restore(
 /// Sets every variable of `varmap` from the weights of a model directory (a checkpoint or an
 /// export in any float type). Every variable must be there with its shape.
 pub fn load_weights(dir: &Path, varmap: &VarMap, device: &Device) -> Result<(), TrainError> {
-    let path = dir.join(model_checkpoint::WEIGHTS_FILE);
-    let tensors: HashMap<String, Tensor> = candle_core::safetensors::load(&path, device)?;
     let vars =
         varmap.data().lock().map_err(|_| TrainError::Json("variable map poisoned".into()))?;
-    for (name, var) in vars.iter() {
-        let t = tensors.get(name).ok_or_else(|| TrainError::Weights {
+    let shapes = vars.iter().map(|(name, var)| (name.clone(), var.dims().to_vec())).collect();
+    for (name, tensor) in read_weights(dir, &shapes, device)? {
+        if let Some(var) = vars.get(&name) {
+            var.set(&tensor)?;
+        }
+    }
+    Ok(())
+}
+
+/// The f32 weights of a model directory named in `shapes`, each checked to be there with its
+/// shape.
+pub fn read_weights(
+    dir: &Path,
+    shapes: &HashMap<String, Vec<usize>>,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>, TrainError> {
+    let path = dir.join(model_checkpoint::WEIGHTS_FILE);
+    let mut tensors: HashMap<String, Tensor> = candle_core::safetensors::load(&path, device)?;
+    let mut weights = HashMap::with_capacity(shapes.len());
+    for (name, dims) in shapes {
+        let t = tensors.remove(name).ok_or_else(|| TrainError::Weights {
             path: path.clone(),
             message: format!("no tensor '{name}'"),
         })?;
-        if t.dims() != var.dims() {
+        if t.dims() != dims.as_slice() {
             return Err(TrainError::Weights {
                 path: path.clone(),
-                message: format!(
-                    "tensor '{name}': expected shape {:?}, found {:?}",
-                    var.dims(),
-                    t.dims()
-                ),
+                message: format!("tensor '{name}': expected shape {dims:?}, found {:?}", t.dims()),
             });
         }
-        var.set(&t.to_dtype(DType::F32)?)?;
+        weights.insert(name.clone(), t.to_dtype(DType::F32)?);
     }
-    Ok(())
+    Ok(weights)
 }
 
 /// Writes what inference needs (`config.json` + `model.safetensors`, no optimizer state) from

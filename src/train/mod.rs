@@ -2,6 +2,7 @@
 //! Nothing on the inference path uses this module.
 
 pub mod augment;
+pub mod average;
 pub mod batch;
 pub mod checkpoint;
 pub mod dataset;

@@ -11,6 +11,7 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::MetricOptions;
+use crate::model::checkpoint::detached_weights;
 use crate::model::{
     ENCODER_SCOPE, EncoderTraining, FaceConfig, FaceModel, TrainBatch,
     checkpoint as model_checkpoint,
@@ -18,6 +19,7 @@ use crate::model::{
 use crate::tokenize::Quantizer;
 
 use super::TrainError;
+use super::average::WeightAverage;
 use super::batch::{BatchConfig, BatchSource, Prefetcher};
 use super::checkpoint::{self, RunDir, TrainState};
 use super::dataset::{FolderData, load_folder};
@@ -53,6 +55,11 @@ pub struct TrainConfig {
     /// space moves less than the decoder (runs from before the option: 1).
     #[serde(default = "full_rate")]
     pub encoder_lr_scale: f64,
+    /// The decay of an exponential moving average of the weights, which the run then
+    /// evaluates, keeps as best and checkpoints (see [`WeightAverage`]); none: the raw weights
+    /// (runs from before the option).
+    #[serde(default)]
+    pub weight_average: Option<f64>,
 }
 
 fn full_rate() -> f64 {
@@ -66,6 +73,7 @@ pub struct Trainer {
     varmap: VarMap,
     model: FaceModel,
     optimizer: Optimizer,
+    average: Option<WeightAverage>,
     state: TrainState,
     train_data: Option<Arc<FolderData>>,
     eval_set: EvalSet,
@@ -91,7 +99,7 @@ impl Trainer {
         let json =
             serde_json::to_string_pretty(&cfg).map_err(|e| TrainError::Json(e.to_string()))?;
         std::fs::write(dir.config(), json).map_err(TrainError::io(&dir.config()))?;
-        let trainer = Self::build(cfg, dir, device)?;
+        let mut trainer = Self::build(cfg, dir, device)?;
         if let Some(init) = init {
             let init_cfg = model_checkpoint::load_config(init)?;
             if init_cfg != trainer.cfg.model {
@@ -102,6 +110,7 @@ impl Trainer {
             }
             checkpoint::load_weights(init, &trainer.varmap, &trainer.device)?;
         }
+        trainer.average = trainer.start_average()?;
         Ok(trainer)
     }
 
@@ -121,7 +130,17 @@ impl Trainer {
             &mut trainer.optimizer,
             &trainer.device,
         )?;
+        trainer.average = trainer.start_average()?;
+        if let Some(average) = &mut trainer.average {
+            average
+                .restore(&checkpoint::average_dir(&trainer.dir.checkpoint()), &trainer.device)?;
+        }
         Ok(trainer)
+    }
+
+    /// The weight average of the run's configuration, starting at the current weights.
+    fn start_average(&self) -> Result<Option<WeightAverage>, TrainError> {
+        self.cfg.weight_average.map(|decay| WeightAverage::start(decay, &self.varmap)).transpose()
     }
 
     fn build(cfg: TrainConfig, dir: RunDir, device: Device) -> Result<Self, TrainError> {
@@ -170,6 +189,7 @@ impl Trainer {
             varmap,
             model,
             optimizer,
+            average: None,
             state: TrainState::default(),
             train_data,
             eval_set,
@@ -205,10 +225,17 @@ impl Trainer {
         self.optimizer.counts()
     }
 
-    /// Evaluates the current weights, logs the report, and exports them to `best/` when
-    /// their Chamfer distance is the lowest so far.
+    /// Evaluates the current weights (their average, when the run keeps one), logs the
+    /// report, and exports them to `best/` when their Chamfer distance is the lowest so far.
     pub fn evaluate_and_keep_best(&mut self) -> Result<EvalReport, TrainError> {
-        let model = model_checkpoint::inference_model(&self.cfg.model, &self.varmap, &self.device)?;
+        let weights = match &self.average {
+            Some(average) => average.weights().clone(),
+            None => detached_weights(&self.varmap),
+        };
+        let model = FaceModel::new(
+            &self.cfg.model,
+            VarBuilder::from_tensors(weights.clone(), DType::F32, &self.device),
+        )?;
         let metric =
             MetricOptions { samples: self.cfg.eval_metric_samples, ..MetricOptions::default() };
         let report = evaluate(&model, &self.eval_set, 16, &metric)?;
@@ -219,7 +246,7 @@ impl Trainer {
             elapsed_s: self.state.elapsed_s,
         })?;
         if self.state.record_best(report.chamfer_mean) {
-            model_checkpoint::save(&self.dir.best(), &self.cfg.model, &self.varmap)?;
+            model_checkpoint::write_model_dir(&self.dir.best(), &self.cfg.model, &weights)?;
         }
         Ok(report)
     }
@@ -305,6 +332,9 @@ impl run_loop::Steps for Trainer {
             &self.cfg.plan,
             &session.clock,
         )?;
+        if let Some(average) = &mut self.average {
+            average.update(&self.varmap, self.state.step)?;
+        }
         let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
         self.log.write(&LogRecord::Step {
             step: self.state.step,
@@ -335,6 +365,7 @@ impl run_loop::Steps for Trainer {
             &self.varmap,
             &self.optimizer,
             &self.state,
+            self.average.as_ref().map(WeightAverage::weights),
         )
     }
 }

@@ -312,6 +312,7 @@ impl run_loop::Steps for DitTrainer {
             &self.varmap,
             &self.optimizer,
             &self.state,
+            None,
         )
     }
 }
