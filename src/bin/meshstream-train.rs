@@ -115,8 +115,8 @@ struct AeArgs {
     /// still needs retraining once it moves at all).
     #[arg(long, default_value_t = 1.0, value_parser = parse_rate_share, conflicts_with = "freeze_encoder")]
     encoder_lr_scale: f64,
-    /// Keep an exponential moving average of the weights with this decay (e.g. 0.998, about
-    /// the last 500 steps): evaluations, best/ and exports use it; the checkpoint keeps it in
+    /// Keep an exponential moving average of the weights with this decay (e.g. 0.995, about
+    /// the last 200 steps): evaluations, best/ and exports use it; the checkpoint keeps it in
     /// checkpoint/average/ beside the raw weights that training continues from.
     #[arg(long)]
     weight_average: Option<f64>,

@@ -42,7 +42,8 @@ impl WeightAverage {
         Ok(Self { decay, weights })
     }
 
-    /// Replaces the averaged weights with those a checkpoint kept (see [`Self::save`]).
+    /// Replaces the averaged weights with those a checkpoint kept in its
+    /// [`checkpoint::average_dir`].
     pub fn restore(&mut self, dir: &Path, device: &Device) -> Result<(), TrainError> {
         let shapes =
             self.weights.iter().map(|(name, t)| (name.clone(), t.dims().to_vec())).collect();
@@ -50,8 +51,8 @@ impl WeightAverage {
         Ok(())
     }
 
-    /// Folds in the weights of `varmap` after the optimizer's step `step` (counted from 1 in
-    /// this run). Early on the decay is lower, (1 + step) / (10 + step), so that the average
+    /// Folds in the weights of `varmap` after the optimizer's step `step` (the run's count,
+    /// from 1; a resumed run goes on counting). Early on the decay is lower, (1 + step) / (10 + step), so that the average
     /// leaves its starting point (random weights, in a fresh run) within tens of steps rather
     /// than `1 / (1 - decay)`.
     pub fn update(&mut self, varmap: &VarMap, step: u64) -> Result<(), TrainError> {
