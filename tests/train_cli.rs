@@ -78,13 +78,16 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
     // (It also turns every sample by a quarter turn, which its train.json records.)
     let frozen = tmp.path().join("frozen");
-    // (And weights its procedural mix, which train.json records too.)
+    // (And weights its procedural mix, and spreads its points, which train.json records too:
+    // the init drew them independently, which does not change what its weights fit.)
     let extra = [
         "--freeze-encoder",
         "--any-angle-share",
         "0",
         "--procedural-weights",
         "box=3,l-extrusion=0",
+        "--point-oversampling",
+        "4",
     ];
     run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &extra);
     let config: serde_json::Value =
@@ -92,6 +95,8 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_eq!(config["batch"]["sample"]["augment"]["any_angle_share"], 0.0);
     let mix = &config["batch"]["procedural_weights"];
     assert_eq!((&mix["Box"], &mix["LExtrusion"]), (&3.into(), &0.into()));
+    assert_eq!(config["batch"]["sample"]["point_oversampling"], 4);
+    assert_eq!(config["model"]["point_oversampling"], 4);
     let weights = |dir: &Path| {
         candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
             .unwrap()
@@ -204,7 +209,7 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
     assert!(String::from_utf8_lossy(&output.stderr).contains("--resume"));
 
     // Each bad argument is refused with a message that names what is wrong.
-    let refusals: [(&[&str], &str); 7] = [
+    let refusals: [(&[&str], &str); 8] = [
         (&["--curriculum", "ten:5"], "ten:5"),
         (&["--any-angle-share", "1.5"], "between 0 and 1"),
         // Freezing needs trained weights to keep.
@@ -217,6 +222,7 @@ fn refuses_to_overwrite_a_run_and_reports_bad_arguments() {
         ),
         (&["--procedural-weights", "blob=2"], "unknown shape kind 'blob'"),
         (&["--procedural-weights", "box=2000"], "at most 1000"),
+        (&["--point-oversampling", "0"], "point_oversampling 0 not in 1..=64"),
     ];
     for (i, (args, says)) in refusals.into_iter().enumerate() {
         let run = tmp.path().join(format!("refused-{i}"));

@@ -126,6 +126,11 @@ struct AeArgs {
     /// Override the preset's face limit.
     #[arg(long)]
     max_faces: Option<usize>,
+    /// Draw the encoder's points as the farthest apart of this many times as many, so that
+    /// they spread evenly (1: drawn independently, the presets' choice). Saved in the model's
+    /// config, so that inference draws them the same way; --init may change it.
+    #[arg(long)]
+    point_oversampling: Option<usize>,
     /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
     /// run trains on procedural shapes only.
     #[arg(long)]
@@ -408,12 +413,7 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
             Err(e) => unreadable.push(format!("{}: {e}", path.display())),
         }
     }
-    let sample = SampleConfig {
-        levels: cfg.quant_levels as u16,
-        num_points: cfg.num_points,
-        num_queries: cfg.num_latents,
-        augment: AugmentConfig::OFF,
-    };
+    let sample = SampleConfig::for_model(&cfg, AugmentConfig::OFF)?;
     let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed);
     let losses = loss_per_mesh(&model, &set)?;
     let rows: Vec<MeshLoss> = set
@@ -608,23 +608,22 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         model.max_faces = max_faces;
         model.validate()?;
     }
-    let levels = u16::try_from(model.quant_levels).context("quantization levels")?;
+    if let Some(oversampling) = args.point_oversampling {
+        model.point_oversampling = oversampling;
+        model.validate()?;
+    }
+    let augment = AugmentConfig {
+        rotation: args.rotation,
+        flip_probability: args.flip_probability,
+        scale_jitter: args.scale_jitter,
+        any_angle_share: args.any_angle_share,
+    };
     Ok(TrainConfig {
         data: args.data.clone(),
         train_split: args.split.clone(),
         eval_split: args.eval_split.clone(),
         batch: BatchConfig {
-            sample: SampleConfig {
-                levels,
-                num_points: model.num_points,
-                num_queries: model.num_latents,
-                augment: AugmentConfig {
-                    rotation: args.rotation,
-                    flip_probability: args.flip_probability,
-                    scale_jitter: args.scale_jitter,
-                    any_angle_share: args.any_angle_share,
-                },
-            },
+            sample: SampleConfig::for_model(&model, augment)?,
             faces_per_batch: args.batch_faces,
             procedural_ratio: args.procedural_ratio,
             procedural_weights: procedural_weights(&args.procedural_weights)?,

@@ -50,8 +50,14 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let cfg = model.config().clone();
     let (input, normalization) = normalized_input(&args.input)?;
-    let clouds = input_clouds(&input, cfg.num_points, args.reference_points, args.seed)
-        .context("preparing the input points")?;
+    let clouds = input_clouds(
+        &input,
+        cfg.num_points,
+        cfg.point_oversampling,
+        args.reference_points,
+        args.seed,
+    )
+    .context("preparing the input points")?;
     let start = Instant::now();
     let latents = model.encode_point_cloud(&clouds.encoder)?;
     let fit = FitOptions {

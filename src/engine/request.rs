@@ -41,8 +41,13 @@ impl PreparedPoints {
         }
         input.validate()?;
         let normalization = Normalization::fit(&input.vertices)?;
-        let clouds =
-            input_clouds(&normalization.apply_mesh(input), cfg.num_points, reference, seed)?;
+        let clouds = input_clouds(
+            &normalization.apply_mesh(input),
+            cfg.num_points,
+            cfg.point_oversampling,
+            reference,
+            seed,
+        )?;
         let cloud = clouds.encoder;
         let normals = cloud.normals.unwrap_or_default();
         if normals.len() != cloud.vertices.len()

@@ -48,7 +48,7 @@ pub enum Event {
 }
 
 /// A finished request: the mesh in the caller's coordinates (vertices welded as in
-/// [`detokenize`]) and how it went.
+/// [`crate::tokenize::detokenize`]) and how it went.
 #[derive(Debug, Clone)]
 pub struct Completed {
     pub mesh: Mesh,

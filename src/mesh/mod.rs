@@ -30,7 +30,7 @@ pub use limits::ReadLimits;
 pub use normalize::Normalization;
 pub use points::{
     InputClouds, NORMAL_NEIGHBOURS, REFERENCE_POINTS, estimate_normals, input_clouds,
-    reference_points,
+    reference_points, spread_points,
 };
 pub use sample::sample_surface;
 

@@ -43,6 +43,12 @@ pub struct FaceConfig {
     pub max_faces: usize,
     /// Surface points (with normals) the encoder reads.
     pub num_points: usize,
+    /// How the encoder's points are drawn: the `num_points` farthest apart, in turn, of this
+    /// many times as many drawn at random, so that they spread evenly over the surface; 1
+    /// draws them independently. Training and inference both follow it, and the weights do
+    /// not depend on it (a fine-tune may change it).
+    #[serde(default = "independent_points")]
+    pub point_oversampling: usize,
     /// K: latent vectors, i.e. FPS-selected queries.
     pub num_latents: usize,
     /// Width of a latent vector after the bottleneck.
@@ -60,6 +66,15 @@ pub struct FaceConfig {
     pub norm_eps: f64,
 }
 
+/// Models saved before [`FaceConfig::point_oversampling`] drew their points independently.
+fn independent_points() -> usize {
+    1
+}
+
+/// The most [`FaceConfig::point_oversampling`] a config may ask for: farthest point sampling
+/// costs `num_points` passes over the oversampled points.
+pub const MAX_POINT_OVERSAMPLING: usize = 64;
+
 /// Coordinates per face: (z0 y0 x0 z1 y1 x1 z2 y2 x2).
 pub const COORDS_PER_FACE: usize = 9;
 
@@ -73,6 +88,7 @@ impl FaceConfig {
             quant_levels: 128,
             max_faces: 400,
             num_points: 1024,
+            point_oversampling: 1,
             num_latents: 128,
             latent_dim: 64,
             bottleneck: Bottleneck::Linear,
@@ -92,6 +108,7 @@ impl FaceConfig {
             quant_levels: 128,
             max_faces: 4000,
             num_points: 8192,
+            point_oversampling: 1,
             num_latents: 2048,
             latent_dim: 64,
             bottleneck: Bottleneck::Linear,
@@ -112,6 +129,7 @@ impl FaceConfig {
             quant_levels: 1024,
             max_faces: 8000,
             num_points: 65_536,
+            point_oversampling: 1,
             num_latents: 2048,
             latent_dim: 64,
             bottleneck: Bottleneck::Linear,
@@ -132,6 +150,7 @@ impl FaceConfig {
             quant_levels: 16,
             max_faces: 40,
             num_points: 64,
+            point_oversampling: 1,
             num_latents: 8,
             latent_dim: 8,
             bottleneck: Bottleneck::Linear,
@@ -155,6 +174,11 @@ impl FaceConfig {
                 "unknown preset {other:?} (expected tiny, base or large)"
             ))),
         }
+    }
+
+    /// Whether weights made for `other` fit this config: everything but how points are drawn.
+    pub fn same_weights(&self, other: &Self) -> bool {
+        *self == Self { point_oversampling: self.point_oversampling, ..other.clone() }
     }
 
     /// Width of the Fourier features of one point with its normal (6 inputs, each kept raw
@@ -185,6 +209,12 @@ impl FaceConfig {
             if v == 0 {
                 return bad(format!("{name} must be positive"));
             }
+        }
+        if !(1..=MAX_POINT_OVERSAMPLING).contains(&self.point_oversampling) {
+            return bad(format!(
+                "point_oversampling {} not in 1..={MAX_POINT_OVERSAMPLING}",
+                self.point_oversampling
+            ));
         }
         if self.num_latents > self.num_points {
             return bad(format!(
@@ -324,5 +354,20 @@ mod tests {
         let mut cfg = FaceConfig::tiny();
         cfg.bottleneck = Bottleneck::Kl { weight: f64::NAN };
         assert!(cfg.validate().is_err());
+        for oversampling in [0, MAX_POINT_OVERSAMPLING + 1] {
+            let cfg = FaceConfig { point_oversampling: oversampling, ..FaceConfig::tiny() };
+            assert!(cfg.validate().is_err(), "{oversampling}");
+        }
+    }
+
+    #[test]
+    fn configs_saved_before_point_oversampling_draw_points_independently() {
+        let mut json = serde_json::to_value(FaceConfig::tiny()).unwrap();
+        json.as_object_mut().unwrap().remove("point_oversampling");
+        let old: FaceConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(old.point_oversampling, 1);
+        let spread = FaceConfig { point_oversampling: 4, ..old.clone() };
+        assert!(old.same_weights(&spread) && spread != old);
+        assert!(!old.same_weights(&FaceConfig { num_latents: 64, ..spread }));
     }
 }

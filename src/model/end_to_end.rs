@@ -96,6 +96,7 @@ fn test_config() -> FaceConfig {
         quant_levels: 128,
         max_faces: 16,
         num_points: 256,
+        point_oversampling: 1,
         num_latents: 32,
         latent_dim: 16,
         bottleneck: Bottleneck::Linear,

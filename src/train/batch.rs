@@ -11,7 +11,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::mesh::{Mesh, farthest_point_sampling, sample_surface};
+use crate::mesh::{Mesh, farthest_point_sampling, sample_surface, spread_points};
+use crate::model::FaceConfig;
 use crate::tokenize::{FaceToken, Quantizer, tokenize};
 
 use super::TrainError;
@@ -36,8 +37,29 @@ pub struct TrainingSample {
 pub struct SampleConfig {
     pub levels: u16,
     pub num_points: usize,
+    /// The model's [`crate::model::FaceConfig::point_oversampling`] (1 in runs made before it).
+    #[serde(default = "independent_points")]
+    pub point_oversampling: usize,
     pub num_queries: usize,
     pub augment: AugmentConfig,
+}
+
+fn independent_points() -> usize {
+    1
+}
+
+impl SampleConfig {
+    /// How `model` reads a mesh, with `augment` applied first.
+    pub fn for_model(model: &FaceConfig, augment: AugmentConfig) -> Result<Self, TrainError> {
+        Ok(Self {
+            levels: u16::try_from(model.quant_levels)
+                .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
+            num_points: model.num_points,
+            point_oversampling: model.point_oversampling,
+            num_queries: model.num_latents,
+            augment,
+        })
+    }
 }
 
 /// Augments, normalizes and tokenizes `mesh`, and samples the encoder's points from the
@@ -55,7 +77,8 @@ pub fn prepare_sample(
     if faces.is_empty() || faces.len() > max_faces {
         return Ok(None);
     }
-    let cloud = sample_surface(&normalized, cfg.num_points, rng.random())?;
+    let drawn = cfg.num_points.saturating_mul(cfg.point_oversampling.max(1));
+    let cloud = spread_points(sample_surface(&normalized, drawn, rng.random())?, cfg.num_points);
     let start = rng.random_range(0..cloud.vertices.len().max(1));
     let queries = farthest_point_sampling(&cloud.vertices, cfg.num_queries, start)
         .into_iter()
@@ -257,6 +280,7 @@ mod tests {
             sample: SampleConfig {
                 levels: 128,
                 num_points: 256,
+                point_oversampling: 1,
                 num_queries: 32,
                 augment: AugmentConfig::default(),
             },
@@ -271,6 +295,28 @@ mod tests {
             seed: 5,
             max_padding: 0.25,
         }
+    }
+
+    #[test]
+    fn oversampled_points_are_spread_apart() {
+        let sphere = crate::mesh::primitives::uv_sphere(1.0, 16, 8);
+        let closest_pair = |oversampling: usize| {
+            let cfg = SampleConfig { point_oversampling: oversampling, ..config(300).sample };
+            let mut rng = ChaCha8Rng::seed_from_u64(3);
+            let s = prepare_sample("sphere", &sphere, &cfg, 400, &mut rng).unwrap().unwrap();
+            assert_eq!((s.points.len(), s.normals.len(), s.queries.len()), (256, 256, 32));
+            let mut closest = f32::INFINITY;
+            for (i, a) in s.points.iter().enumerate() {
+                for b in &s.points[..i] {
+                    closest = closest.min((0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>());
+                }
+            }
+            closest.sqrt()
+        };
+        // Independent draws put some pairs almost on top of each other; farthest point
+        // sampling keeps every pair at least about the spacing of an even cover apart.
+        let (drawn, spread) = (closest_pair(1), closest_pair(4));
+        assert!(spread > 5.0 * drawn, "{spread} against {drawn}");
     }
 
     #[test]

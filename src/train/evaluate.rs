@@ -334,12 +334,7 @@ mod tests {
     use crate::model::testing::random_model;
 
     fn sample_config(cfg: &FaceConfig) -> SampleConfig {
-        SampleConfig {
-            levels: cfg.quant_levels as u16,
-            num_points: cfg.num_points,
-            num_queries: cfg.num_latents,
-            augment: AugmentConfig::OFF,
-        }
+        SampleConfig::for_model(cfg, AugmentConfig::OFF).unwrap()
     }
 
     #[test]

@@ -102,7 +102,7 @@ impl Trainer {
         let mut trainer = Self::build(cfg, dir, device)?;
         if let Some(init) = init {
             let init_cfg = model_checkpoint::load_config(init)?;
-            if init_cfg != trainer.cfg.model {
+            if !init_cfg.same_weights(&trainer.cfg.model) {
                 return Err(TrainError::Config(format!(
                     "{} has a different model configuration than this run",
                     init.display()

@@ -126,13 +126,7 @@ impl LatentCache {
                     .into(),
             ));
         }
-        let sample_cfg = SampleConfig {
-            levels: u16::try_from(ae.quant_levels)
-                .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
-            num_points: ae.num_points,
-            num_queries: ae.num_latents,
-            augment: AugmentConfig::OFF,
-        };
+        let sample_cfg = SampleConfig::for_model(ae, AugmentConfig::OFF)?;
         let bar = progress_bar(copies as u64, progress);
         let mut cache = Self {
             info: CacheInfo {

@@ -45,13 +45,7 @@ impl DitEvalSet {
         autoencoder: &FaceModel,
     ) -> Result<Self, TrainError> {
         let ae = autoencoder.config();
-        let sample = SampleConfig {
-            levels: u16::try_from(ae.quant_levels)
-                .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
-            num_points: ae.num_points,
-            num_queries: ae.num_latents,
-            augment: super::super::augment::AugmentConfig::OFF,
-        };
+        let sample = SampleConfig::for_model(ae, super::super::augment::AugmentConfig::OFF)?;
         let set = EvalSet::build(folder, from_folder, procedural, &sample, ae.max_faces)?;
         let size = view.size as usize;
         let mut pixels = Vec::with_capacity(set.items.len());
