@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use clap::Subcommand;
 use meshstream::mesh::{
     FitOptions, Format, REFERENCE_POINTS, ReadLimits, farthest_point_sampling, fit_to_points,
-    primitives, read_mesh, sample_surface, write_mesh,
+    input_clouds, primitives, read_mesh, sample_surface, write_mesh,
 };
 use meshstream::metrics::{MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -96,6 +96,24 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.0} K points/s", 65_536.0 / t.as_secs_f64() / 1e3),
     ]);
+
+    // What a request's input costs before the model sees it: the encoder's 1,024 points
+    // (drawn independently, or spread over 4 times as many) and the reference, from a mesh
+    // and from a cloud with normals.
+    let points = meshstream::mesh::Mesh { faces: Vec::new(), ..cloud.clone() };
+    for (input, what) in [(&dense, format!("{faces} faces")), (&points, "65,536 points".into())] {
+        for oversampling in [1, 4] {
+            let t = time_per_run(budget, || {
+                input_clouds(input, 1024, oversampling, REFERENCE_POINTS, 0)
+            });
+            table.add_row([
+                format!("input points (oversampling {oversampling})"),
+                format!("{what} -> 1,024 + {REFERENCE_POINTS}"),
+                format!("{:.1} ms", t.as_secs_f64() * 1e3),
+                format!("{:.0} inputs/s", 1.0 / t.as_secs_f64()),
+            ]);
+        }
+    }
 
     let pred = primitives::uv_sphere(1.1, 64, 32);
     let gt = primitives::uv_sphere(1.0, 256, 128);
