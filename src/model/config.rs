@@ -47,7 +47,7 @@ pub struct FaceConfig {
     /// many times as many drawn at random, so that they spread evenly over the surface; 1
     /// draws them independently. Training and inference both follow it, and the weights do
     /// not depend on it (a fine-tune may change it).
-    #[serde(default = "independent_points")]
+    #[serde(default = "FaceConfig::independent_points")]
     pub point_oversampling: usize,
     /// K: latent vectors, i.e. FPS-selected queries.
     pub num_latents: usize,
@@ -64,11 +64,6 @@ pub struct FaceConfig {
     pub head_hidden: usize,
     pub rope_theta: f64,
     pub norm_eps: f64,
-}
-
-/// Models saved before [`FaceConfig::point_oversampling`] drew their points independently.
-fn independent_points() -> usize {
-    1
 }
 
 /// The most [`FaceConfig::point_oversampling`] a config may ask for: farthest point sampling
@@ -174,6 +169,11 @@ impl FaceConfig {
                 "unknown preset {other:?} (expected tiny, base or large)"
             ))),
         }
+    }
+
+    /// What configs saved before [`Self::point_oversampling`] did: draw points independently.
+    pub(crate) fn independent_points() -> usize {
+        1
     }
 
     /// Whether weights made for `other` fit this config: everything but how points are drawn.

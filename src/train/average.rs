@@ -52,9 +52,9 @@ impl WeightAverage {
     }
 
     /// Folds in the weights of `varmap` after the optimizer's step `step` (the run's count,
-    /// from 1; a resumed run goes on counting). Early on the decay is lower, (1 + step) / (10 + step), so that the average
-    /// leaves its starting point (random weights, in a fresh run) within tens of steps rather
-    /// than `1 / (1 - decay)`.
+    /// from 1; a resumed run goes on counting). Early on the decay is lower, (1 + step) /
+    /// (10 + step), so that the average leaves its starting point (random weights, in a fresh
+    /// run) within tens of steps rather than `1 / (1 - decay)`.
     pub fn update(&mut self, varmap: &VarMap, step: u64) -> Result<(), TrainError> {
         let d = self.decay_at(step);
         for (name, current) in detached_weights(varmap) {

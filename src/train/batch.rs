@@ -37,15 +37,11 @@ pub struct TrainingSample {
 pub struct SampleConfig {
     pub levels: u16,
     pub num_points: usize,
-    /// The model's [`crate::model::FaceConfig::point_oversampling`] (1 in runs made before it).
-    #[serde(default = "independent_points")]
+    /// The model's [`FaceConfig::point_oversampling`] (1 in runs made before it).
+    #[serde(default = "FaceConfig::independent_points")]
     pub point_oversampling: usize,
     pub num_queries: usize,
     pub augment: AugmentConfig,
-}
-
-fn independent_points() -> usize {
-    1
 }
 
 impl SampleConfig {
