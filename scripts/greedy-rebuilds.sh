@@ -31,11 +31,20 @@ for set in held tuning; do
     find "$gt" -name '*.ply' -printf '%f\n' | sed 's/\.ply$//' | xargs -P 2 -I{} env \
       RAYON_NUM_THREADS=1 "$target/meshstream" reconstruct "$gt/{}.ply" -o "$pred/{}.glb" \
       --model "$model" --temperature 0 --candidates 1 --fit-rounds 0 --seed "$seed" 2>/dev/null
-    line=$("$target/meshstream" eval --pred "$pred" --gt "$gt" | grep -o 'none extra: [0-9]* of [0-9]*')
+    "$target/meshstream" eval --pred "$pred" --gt "$gt" > "$pred/eval.txt"
+    line=$(grep -o 'none extra: [0-9]* of [0-9]*' "$pred/eval.txt")
     read -r whole of <<<"$(echo "$line" | grep -o '[0-9]\+' | tr '\n' ' ')"
     echo "$set, seed $seed: $whole of $of rebuilt with every face right"
     total=$((total + whole))
     count=$((count + of))
   done
 done
+# By kind and face count (a prism's count gives its sides: 4n - 4 faces for n sides), over
+# every set and seed: which shapes fail, not just how many.
+cat "$out"/*/seed-*/eval.txt | awk -F'|' '/^\| [0-9]+-/ {
+  name = $2; gsub(/ /, "", name); kind = substr(name, index(name, "-") + 1)
+  split($7, f, " "); made = f[4]; gsub(/\(/, "", made)
+  key = sprintf("%s, %3d faces", kind, f[3]); n[key]++
+  if (f[1] == f[3] && made == f[3]) whole[key]++
+} END { for (k in n) printf "%s: %d of %d\n", k, whole[k], n[k] }' | sort
 echo "all: $total of $count"
