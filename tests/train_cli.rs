@@ -197,6 +197,24 @@ fn assert_scores_meshes(model: &Path, tmp: &Path) {
     let left_out = report["left_out"].as_array().unwrap();
     assert_eq!(left_out.len(), 1, "{report}");
     assert!(left_out[0].as_str().unwrap().starts_with("a-point: "), "{report}");
+
+    // Split by coordinate, each mesh's 9 means and its end of mesh add up to its loss.
+    let output = train_bin()
+        .args(["loss", "--json", "--per-coordinate", "--model", model.to_str().unwrap()])
+        .arg(&shapes)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    for mesh in report["meshes"].as_array().unwrap() {
+        let faces = mesh["faces"].as_f64().unwrap();
+        let coordinates: Vec<f64> =
+            mesh["coordinates"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        assert_eq!(coordinates.len(), 9, "{mesh}");
+        let summed = coordinates.iter().sum::<f64>() * faces + mesh["end"].as_f64().unwrap();
+        let loss = mesh["loss"].as_f64().unwrap() * (faces + 1.0);
+        assert!((summed - loss).abs() < 1e-3 * loss, "{mesh}");
+    }
 }
 
 #[test]

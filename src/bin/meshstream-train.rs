@@ -9,7 +9,7 @@ use candle_core::DType;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
 use meshstream::mesh::{ReadLimits, expand_mesh_paths, read_mesh_file, write_mesh_file};
-use meshstream::model::{EncoderTraining, FaceConfig, parse_device};
+use meshstream::model::{CoordinateNll, EncoderTraining, FaceConfig, parse_device};
 use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
@@ -19,7 +19,9 @@ use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
 use meshstream::train::dit::evaluate::DitEvalOptions;
 use meshstream::train::dit::trainer::DitTrainer;
 use meshstream::train::dit::views::ViewConfig;
-use meshstream::train::evaluate::{EvalSet, HELD_OUT_PROCEDURAL_SEED, loss_per_mesh};
+use meshstream::train::evaluate::{
+    EvalSet, HELD_OUT_PROCEDURAL_SEED, coordinate_nll_per_mesh, loss_per_mesh,
+};
 use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
@@ -387,6 +389,10 @@ struct LossArgs {
     /// One JSON object instead of the table.
     #[arg(long)]
     json: bool,
+    /// Also split each mesh's loss by coordinate: the mean over its faces of each of the 9
+    /// values (z, y, x of each corner, in token order) and the end of mesh, in nats.
+    #[arg(long)]
+    per_coordinate: bool,
 }
 
 #[derive(serde::Serialize)]
@@ -394,6 +400,8 @@ struct MeshLoss {
     name: String,
     faces: usize,
     loss: f64,
+    #[serde(flatten, skip_serializing_if = "Option::is_none")]
+    by_coordinate: Option<CoordinateNll>,
 }
 
 /// `meshstream-train loss`: meshes that cannot be read or tokenized are reported and counted.
@@ -416,11 +424,22 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
     let sample = SampleConfig::for_model(&cfg, AugmentConfig::OFF)?;
     let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed);
     let losses = loss_per_mesh(&model, &set)?;
+    let by_coordinate: Vec<Option<CoordinateNll>> = if args.per_coordinate {
+        coordinate_nll_per_mesh(&model, &set)?.into_iter().map(Some).collect()
+    } else {
+        vec![None; set.items.len()]
+    };
     let rows: Vec<MeshLoss> = set
         .items
         .iter()
         .zip(losses)
-        .map(|((_, s), loss)| MeshLoss { name: s.name.clone(), faces: s.faces.len(), loss })
+        .zip(by_coordinate)
+        .map(|(((_, s), loss), by_coordinate)| MeshLoss {
+            name: s.name.clone(),
+            faces: s.faces.len(),
+            loss,
+            by_coordinate,
+        })
         .collect();
     let positions: usize = rows.iter().map(|r| r.faces + 1).sum();
     let per_position =
@@ -436,9 +455,19 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
         });
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!("| mesh | faces | loss (nats per face) |\n|---|---|---|");
+        let header = if args.per_coordinate {
+            "| mesh | faces | loss (nats per face) | z0 | y0 | x0 | z1 | y1 | x1 | z2 | y2 | x2 | end |\n\
+             |---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        } else {
+            "| mesh | faces | loss (nats per face) |\n|---|---|---|"
+        };
+        println!("{header}");
         for r in &rows {
-            println!("| {} | {} | {:.3} |", r.name, r.faces, r.loss);
+            let split = r.by_coordinate.as_ref().map_or_else(String::new, |c| {
+                let values = c.coordinates.iter().chain([&c.end]);
+                values.map(|v| format!(" {v:.3} |")).collect()
+            });
+            println!("| {} | {} | {:.3} |{split}", r.name, r.faces, r.loss);
         }
         println!("{} meshes: mean {mean:.3}, per face over all {per_position:.3}", rows.len());
     }

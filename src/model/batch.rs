@@ -79,6 +79,43 @@ impl TrainBatch {
     /// batch (each row's N faces plus its end-of-mesh step). `logits` as returned by
     /// `FaceModel::teacher_forced_logits`.
     pub fn cross_entropy(&self, logits: &[Tensor], quant_levels: usize) -> Result<Tensor> {
+        let positions: usize = self.lengths.iter().map(|l| l + 1).sum();
+        let sums = self
+            .nll(logits, quant_levels)?
+            .into_iter()
+            .map(|(picked, weights)| (picked * weights)?.sum_all())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok((Tensor::stack(&sums, 0)?.sum_all()? / positions as f64)?)
+    }
+
+    /// The teacher-forced loss of each row split by coordinate: which of a face's 9 values the
+    /// model does not know (the mean over the row's faces), and how surely it ends the mesh.
+    pub fn coordinate_nll(
+        &self,
+        logits: &[Tensor],
+        quant_levels: usize,
+    ) -> Result<Vec<CoordinateNll>> {
+        let nll = self.nll(logits, quant_levels)?;
+        let tables: Vec<Vec<Vec<f32>>> =
+            nll.iter().map(|(picked, _)| picked.to_vec2::<f32>()).collect::<Result<_, _>>()?;
+        Ok(self
+            .lengths
+            .iter()
+            .enumerate()
+            .map(|(r, &len)| {
+                let mean = |row: &[f32]| row[..len].iter().sum::<f32>() / len.max(1) as f32;
+                CoordinateNll {
+                    coordinates: std::array::from_fn(|j| mean(&tables[j][r])),
+                    end: tables[0][r][len],
+                }
+            })
+            .collect())
+    }
+
+    /// Per sub-head j: -log p(target) at every position, (B, N + 1) for sub-head 0 (the face's
+    /// first coordinate, then the end of mesh at each row's length) and (B, N) for the others,
+    /// with the weights (1, or 0 on padding) that mask them.
+    fn nll(&self, logits: &[Tensor], quant_levels: usize) -> Result<Vec<(Tensor, Tensor)>> {
         if logits.len() != COORDS_PER_FACE {
             return Err(ModelError::bad_input(format!(
                 "{} logit tensors, expected 9",
@@ -87,8 +124,6 @@ impl TrainBatch {
         }
         let dev = self.faces.device();
         let (b, n, _) = self.faces.dims3()?;
-        let positions: usize = self.lengths.iter().map(|l| l + 1).sum();
-        // Sub-head 0 over N + 1 positions: the face's first coordinate, then EOS at N.
         let faces = self.faces.to_vec3::<u32>()?;
         let mut targets0 = vec![0u32; b * (n + 1)];
         let mut weights0 = vec![0f32; b * (n + 1)];
@@ -99,11 +134,11 @@ impl TrainBatch {
                 weights0[r * (n + 1) + i] = 1.0;
             }
         }
-        let mut total = masked_nll(
-            &logits[0],
-            &Tensor::from_vec(targets0, (b, n + 1), dev)?,
-            &Tensor::from_vec(weights0, (b, n + 1), dev)?,
-        )?;
+        let targets0 = Tensor::from_vec(targets0, (b, n + 1), dev)?;
+        let mut out = vec![(
+            picked_nll(&logits[0], &targets0)?,
+            Tensor::from_vec(weights0, (b, n + 1), dev)?,
+        )];
         let weights: Vec<f32> = self
             .lengths
             .iter()
@@ -112,18 +147,27 @@ impl TrainBatch {
         let weights = Tensor::from_vec(weights, (b, n), dev)?;
         for (j, l) in logits.iter().enumerate().skip(1) {
             let targets = self.faces.narrow(2, j, 1)?.squeeze(2)?.contiguous()?;
-            total = (total + masked_nll(l, &targets, &weights)?)?;
+            out.push((picked_nll(l, &targets)?, weights.clone()));
         }
-        Ok((total / positions as f64)?)
+        Ok(out)
     }
 }
 
-/// Sum over positions of weight * -log p(target). logits (B, T, C), targets (B, T) u32.
-fn masked_nll(logits: &Tensor, targets: &Tensor, weights: &Tensor) -> Result<Tensor> {
+/// One mesh's teacher-forced loss by coordinate, in nats (see [`TrainBatch::coordinate_nll`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct CoordinateNll {
+    /// Mean over the faces of each of the 9 values, in token order (z, y, x of each corner).
+    pub coordinates: [f32; COORDS_PER_FACE],
+    /// The end of mesh at the position after the last face.
+    pub end: f32,
+}
+
+/// -log p(target) at every position. logits (B, T, C), targets (B, T) u32.
+fn picked_nll(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
     let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
     let targets = targets.to_dtype(DType::U32)?.unsqueeze(D::Minus1)?.contiguous()?;
     let picked = logp.contiguous()?.gather(&targets, D::Minus1)?;
-    Ok((picked.squeeze(D::Minus1)? * weights)?.sum_all()?.neg()?)
+    Ok(picked.squeeze(D::Minus1)?.neg()?)
 }
 
 #[cfg(test)]
@@ -154,6 +198,40 @@ mod tests {
         assert!((both - expect).abs() < 1e-4, "{both} vs {expect}");
         // Roughly uniform predictions at initialization: about ln(Q) per coordinate.
         assert!(a > 0.0 && a < 9.0 * (cfg.quant_levels as f32 + 1.0).ln() * 2.0, "{a}");
+    }
+
+    #[test]
+    fn the_loss_by_coordinate_adds_up_to_the_loss() {
+        let cfg = FaceConfig::micro();
+        let (_, model) = random_model(&cfg);
+        let pts: Vec<[f32; 3]> =
+            (0..cfg.num_points).map(|i| [(i as f32).cos(), 0.3, (i as f32).sin()]).collect();
+        let queries: Vec<u32> = (0..cfg.num_latents as u32).collect();
+        let faces = [random_faces(&cfg, 4, 7), random_faces(&cfg, 1, 8)];
+        let examples: Vec<TrainExample> = faces
+            .iter()
+            .map(|f| TrainExample {
+                points: &pts,
+                normals: &pts,
+                query_indices: &queries,
+                faces: f,
+            })
+            .collect();
+        let batch = TrainBatch::new(&examples, &Device::Cpu).unwrap();
+        let loss = model.loss(&batch, EncoderTraining::Frozen).unwrap();
+        let by_coordinate = model.coordinate_nll(&batch).unwrap();
+        assert_eq!(by_coordinate.len(), 2);
+        // Each row: its faces' summed means times its face count, plus its end of mesh.
+        let summed: f32 = by_coordinate
+            .iter()
+            .zip(&faces)
+            .map(|(c, f)| c.coordinates.iter().sum::<f32>() * f.len() as f32 + c.end)
+            .sum();
+        let expect = loss.coords.to_scalar::<f32>().unwrap() * (5 + 2) as f32;
+        assert!((summed - expect).abs() < 1e-3 * expect, "{summed} vs {expect}");
+        assert!(
+            by_coordinate.iter().all(|c| c.end > 0.0 && c.coordinates.iter().all(|&v| v > 0.0))
+        );
     }
 
     #[test]

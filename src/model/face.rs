@@ -261,13 +261,7 @@ impl FaceModel {
 
     /// The training objective on a padded batch (see [`super::TrainBatch`]).
     pub fn loss(&self, batch: &super::TrainBatch, encoder: EncoderTraining) -> Result<TrainLoss> {
-        let enc = self.encode_train(&batch.points, &batch.normals, &batch.query_indices)?;
-        let latents = match encoder {
-            EncoderTraining::Trained => enc.sample()?,
-            EncoderTraining::Frozen => enc.sample()?.detach(),
-        };
-        let hidden = self.hidden_states(&latents, &batch.faces)?;
-        let logits = self.teacher_forced_logits(&hidden, &batch.faces)?;
+        let (logits, enc) = self.batch_logits(batch, encoder)?;
         let coords = batch.cross_entropy(&logits, self.cfg.quant_levels)?;
         let kl = enc.kl()?;
         let total = match self.cfg.bottleneck {
@@ -275,6 +269,28 @@ impl FaceModel {
             super::Bottleneck::Linear => coords.clone(),
         };
         Ok(TrainLoss { total, coords, kl })
+    }
+
+    /// Each row's teacher-forced loss by coordinate (see [`super::TrainBatch::coordinate_nll`]).
+    pub fn coordinate_nll(&self, batch: &super::TrainBatch) -> Result<Vec<super::CoordinateNll>> {
+        let (logits, _) = self.batch_logits(batch, EncoderTraining::Frozen)?;
+        batch.coordinate_nll(&logits, self.cfg.quant_levels)
+    }
+
+    /// The 9 sub-heads' teacher-forced logits for a batch, and the encoder's output they came
+    /// from (for its KL term).
+    fn batch_logits(
+        &self,
+        batch: &super::TrainBatch,
+        encoder: EncoderTraining,
+    ) -> Result<(Vec<Tensor>, EncoderOutput)> {
+        let enc = self.encode_train(&batch.points, &batch.normals, &batch.query_indices)?;
+        let latents = match encoder {
+            EncoderTraining::Trained => enc.sample()?,
+            EncoderTraining::Frozen => enc.sample()?.detach(),
+        };
+        let hidden = self.hidden_states(&latents, &batch.faces)?;
+        Ok((self.teacher_forced_logits(&hidden, &batch.faces)?, enc))
     }
 }
 

@@ -62,7 +62,7 @@ mod sampling;
 pub(crate) mod testing;
 
 pub use baseline::{BaselineState, CoordinateBaseline};
-pub use batch::{TrainBatch, TrainExample};
+pub use batch::{CoordinateNll, TrainBatch, TrainExample};
 pub use cache::{DecoderCache, KV_CHUNK};
 pub use config::{Bottleneck, COORDS_PER_FACE, FaceConfig, StackConfig};
 pub use constraints::{allowed_values, completion_exists, is_valid_next};

@@ -13,8 +13,8 @@ use crate::metrics::{
     summarize, summarize_faces,
 };
 use crate::model::{
-    EncoderTraining, FaceModel, GenerateOptions, Generation, TrainBatch, TrainExample,
-    step_generations,
+    CoordinateNll, EncoderTraining, FaceModel, GenerateOptions, Generation, TrainBatch,
+    TrainExample, step_generations,
 };
 use crate::tokenize::{FaceToken, Quantizer, detokenize};
 
@@ -283,6 +283,20 @@ pub fn loss_per_mesh(
             Ok(loss.sum / loss.positions as f64)
         })
         .collect()
+}
+
+/// Each mesh's teacher-forced loss by coordinate, from its own points, in the set's order:
+/// which of a face's 9 values the model does not know.
+pub fn coordinate_nll_per_mesh(
+    model: &FaceModel,
+    set: &EvalSet,
+) -> Result<Vec<CoordinateNll>, crate::model::ModelError> {
+    let mut out = Vec::with_capacity(set.items.len());
+    for (_, sample) in &set.items {
+        let batch = TrainBatch::new(&[example(sample)], model.device())?;
+        out.extend(model.coordinate_nll(&batch)?);
+    }
+    Ok(out)
 }
 
 /// Greedy reconstructions of every mesh of the set, `batch` sequences decoded together.
