@@ -423,11 +423,15 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
     }
     let sample = SampleConfig::for_model(&cfg, AugmentConfig::OFF)?;
     let (set, left_out) = EvalSet::of_meshes(&meshes, &sample, cfg.max_faces, args.seed);
-    let losses = loss_per_mesh(&model, &set)?;
-    let by_coordinate: Vec<Option<CoordinateNll>> = if args.per_coordinate {
-        coordinate_nll_per_mesh(&model, &set)?.into_iter().map(Some).collect()
+    // The split gives the loss too, so a mesh is run through the model once either way.
+    let (losses, by_coordinate): (Vec<f64>, Vec<Option<CoordinateNll>>) = if args.per_coordinate {
+        let split = coordinate_nll_per_mesh(&model, &set)?;
+        let losses = (split.iter().zip(&set.items))
+            .map(|(c, (_, s))| f64::from(c.per_position(s.faces.len())))
+            .collect();
+        (losses, split.into_iter().map(Some).collect())
     } else {
-        vec![None; set.items.len()]
+        (loss_per_mesh(&model, &set)?, vec![None; set.items.len()])
     };
     let rows: Vec<MeshLoss> = set
         .items

@@ -162,6 +162,14 @@ pub struct CoordinateNll {
     pub end: f32,
 }
 
+impl CoordinateNll {
+    /// The mesh's loss as training counts it, nats per position, for a mesh of `faces` faces:
+    /// the coordinates' means summed over its faces, plus the end of mesh.
+    pub fn per_position(&self, faces: usize) -> f32 {
+        (self.coordinates.iter().sum::<f32>() * faces as f32 + self.end) / (faces + 1) as f32
+    }
+}
+
 /// -log p(target) at every position. logits (B, T, C), targets (B, T) u32.
 fn picked_nll(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
     let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
