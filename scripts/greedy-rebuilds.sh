@@ -4,13 +4,17 @@
 # of `meshstream-train shapes -n 60 --primitives`) and on a tuning set (the 111 of
 # `shapes -n 240 --primitives --seed 20261122`) at several point-sampling seeds, because the
 # count moves with where the encoder's points fall (docs/decisions.md, "Even encoder points").
-# Usage: scripts/greedy-rebuilds.sh [MODEL_DIR] [OUT_DIR] [SEEDS...] (seeds 0-4 by default)
+# FIT_ROUNDS=40 counts them with the corners fitted to the points, as `meshstream reconstruct`
+# does by default (the faces stay the model's; their corners move onto the points).
+# Usage: [FIT_ROUNDS=N] scripts/greedy-rebuilds.sh [MODEL_DIR] [OUT_DIR] [SEEDS...] (seeds 0-4
+# by default, no fitting by default)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}
 out=${2:-target/greedy-rebuilds}
 shift $(($# < 2 ? $# : 2))
 seeds=${*:-0 1 2 3 4}
+fit_rounds=${FIT_ROUNDS:-0}
 target="${CARGO_TARGET_DIR:-target}/release"
 cargo build --release --quiet --bin meshstream --bin meshstream-train
 
@@ -30,7 +34,7 @@ for set in held tuning; do
     # Two reconstructions at a time, one thread each.
     find "$gt" -name '*.ply' -printf '%f\n' | sed 's/\.ply$//' | xargs -P 2 -I{} env \
       RAYON_NUM_THREADS=1 "$target/meshstream" reconstruct "$gt/{}.ply" -o "$pred/{}.glb" \
-      --model "$model" --temperature 0 --candidates 1 --fit-rounds 0 --seed "$seed" 2>/dev/null
+      --model "$model" --temperature 0 --candidates 1 --fit-rounds "$fit_rounds" --seed "$seed" 2>/dev/null
     "$target/meshstream" eval --pred "$pred" --gt "$gt" > "$pred/eval.txt"
     line=$(grep -o 'none extra: [0-9]* of [0-9]*' "$pred/eval.txt")
     read -r whole of <<<"$(echo "$line" | grep -o '[0-9]\+' | tr '\n' ' ')"

@@ -198,9 +198,11 @@ fn assert_scores_meshes(model: &Path, tmp: &Path) {
     assert_eq!(left_out.len(), 1, "{report}");
     assert!(left_out[0].as_str().unwrap().starts_with("a-point: "), "{report}");
 
-    // Split by coordinate, each mesh's 9 means and its end of mesh add up to its loss.
+    // Split by coordinate, each mesh's 9 means and its end of mesh add up to its loss; and
+    // each mesh's greedy decode is scored from the same points.
     let output = train_bin()
-        .args(["loss", "--json", "--per-coordinate", "--model", model.to_str().unwrap()])
+        .args(["loss", "--json", "--per-coordinate", "--greedy"])
+        .args(["--model", model.to_str().unwrap()])
         .arg(&shapes)
         .output()
         .unwrap();
@@ -214,6 +216,13 @@ fn assert_scores_meshes(model: &Path, tmp: &Path) {
         let summed = coordinates.iter().sum::<f64>() * faces + mesh["end"].as_f64().unwrap();
         let loss = mesh["loss"].as_f64().unwrap() * (faces + 1.0);
         assert!((summed - loss).abs() < 1e-3 * loss, "{mesh}");
+        let greedy = &mesh["greedy"];
+        assert!(greedy["faces"].as_u64().unwrap() <= 60, "{mesh}");
+        let greedy_loss = greedy["loss"].as_f64().unwrap();
+        assert!(greedy_loss.is_finite() && greedy_loss > 0.0, "{mesh}");
+        if greedy["same"].as_bool().unwrap() {
+            assert!((greedy_loss - mesh["loss"].as_f64().unwrap()).abs() < 1e-4, "{mesh}");
+        }
     }
 }
 

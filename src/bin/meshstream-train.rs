@@ -20,7 +20,8 @@ use meshstream::train::dit::evaluate::DitEvalOptions;
 use meshstream::train::dit::trainer::DitTrainer;
 use meshstream::train::dit::views::ViewConfig;
 use meshstream::train::evaluate::{
-    EvalSet, HELD_OUT_PROCEDURAL_SEED, coordinate_nll_per_mesh, loss_per_mesh,
+    EvalSet, GreedyScore, HELD_OUT_PROCEDURAL_SEED, coordinate_nll_per_mesh, greedy_scores,
+    loss_per_mesh,
 };
 use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
@@ -393,6 +394,11 @@ struct LossArgs {
     /// values (z, y, x of each corner, in token order) and the end of mesh, in nats.
     #[arg(long)]
     per_coordinate: bool,
+    /// Also decode each mesh greedily from the same points and score the decode: whether a
+    /// wrong greedy mesh is one the model prefers to the truth (fewer nats in all) or one that
+    /// decoding settled for.
+    #[arg(long)]
+    greedy: bool,
 }
 
 #[derive(serde::Serialize)]
@@ -402,6 +408,16 @@ struct MeshLoss {
     loss: f64,
     #[serde(flatten, skip_serializing_if = "Option::is_none")]
     by_coordinate: Option<CoordinateNll>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    greedy: Option<GreedyScore>,
+}
+
+impl MeshLoss {
+    /// Whether greedy decoding made something else, which the model prefers to the truth.
+    fn prefers_greedy(&self) -> Option<bool> {
+        let g = self.greedy?;
+        Some(!g.same && g.nll() < self.loss * (self.faces + 1) as f64)
+    }
 }
 
 /// `meshstream-train loss`: meshes that cannot be read or tokenized are reported and counted.
@@ -433,16 +449,23 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
     } else {
         (loss_per_mesh(&model, &set)?, vec![None; set.items.len()])
     };
+    let greedy: Vec<Option<GreedyScore>> = if args.greedy {
+        greedy_scores(&model, &set)?.into_iter().map(Some).collect()
+    } else {
+        vec![None; set.items.len()]
+    };
     let rows: Vec<MeshLoss> = set
         .items
         .iter()
         .zip(losses)
         .zip(by_coordinate)
-        .map(|(((_, s), loss), by_coordinate)| MeshLoss {
+        .zip(greedy)
+        .map(|((((_, s), loss), by_coordinate), greedy)| MeshLoss {
             name: s.name.clone(),
             faces: s.faces.len(),
             loss,
             by_coordinate,
+            greedy,
         })
         .collect();
     let positions: usize = rows.iter().map(|r| r.faces + 1).sum();
@@ -459,21 +482,39 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
         });
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        let header = if args.per_coordinate {
-            "| mesh | faces | loss (nats per face) | z0 | y0 | x0 | z1 | y1 | x1 | z2 | y2 | x2 | end |\n\
-             |---|---|---|---|---|---|---|---|---|---|---|---|---|"
-        } else {
-            "| mesh | faces | loss (nats per face) |\n|---|---|---|"
-        };
-        println!("{header}");
+        let mut header = vec!["mesh", "faces", "loss (nats per face)"];
+        if args.per_coordinate {
+            header.extend(["z0", "y0", "x0", "z1", "y1", "x1", "z2", "y2", "x2", "end"]);
+        }
+        if args.greedy {
+            header.extend(["greedy faces", "greedy loss", "greedy made", "more likely"]);
+        }
+        println!("| {} |\n|{}", header.join(" | "), "---|".repeat(header.len()));
         for r in &rows {
             let split = r.by_coordinate.as_ref().map_or_else(String::new, |c| {
                 let values = c.coordinates.iter().chain([&c.end]);
                 values.map(|v| format!(" {v:.3} |")).collect()
             });
-            println!("| {} | {} | {:.3} |{split}", r.name, r.faces, r.loss);
+            let greedy = r.greedy.map_or_else(String::new, |g| {
+                let (made, likelier) = match r.prefers_greedy() {
+                    _ if g.same => ("the truth", "-"),
+                    Some(true) => ("another mesh", "greedy's"),
+                    _ => ("another mesh", "the truth"),
+                };
+                format!(" {} | {:.3} | {made} | {likelier} |", g.faces, g.loss)
+            });
+            println!("| {} | {} | {:.3} |{split}{greedy}", r.name, r.faces, r.loss);
         }
         println!("{} meshes: mean {mean:.3}, per face over all {per_position:.3}", rows.len());
+        if args.greedy {
+            let same = rows.iter().filter(|r| r.greedy.is_some_and(|g| g.same)).count();
+            let preferred = rows.iter().filter(|r| r.prefers_greedy() == Some(true)).count();
+            println!(
+                "greedy decoding made the truth {same} times; of the {} other meshes it made, \
+                 the model prefers {preferred} to the truth (fewer nats in all)",
+                rows.len() - same
+            );
+        }
     }
     for (name, why) in &left_out {
         eprintln!("left out {name}: {why}");

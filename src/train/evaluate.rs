@@ -299,6 +299,45 @@ pub fn coordinate_nll_per_mesh(
     Ok(out)
 }
 
+/// What greedy decoding makes of a mesh from its own points, scored by the model that made it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GreedyScore {
+    pub faces: usize,
+    /// The decode's teacher-forced loss from the same points, nats per face position (as
+    /// [`loss_per_mesh`] counts the truth's).
+    pub loss: f64,
+    /// Whether the decode is the truth's sequence, token for token.
+    pub same: bool,
+}
+
+impl GreedyScore {
+    /// -log p of the whole decode, end of mesh included.
+    pub fn nll(&self) -> f64 {
+        self.loss * (self.faces + 1) as f64
+    }
+}
+
+/// Greedy decoding of each mesh of the set from its own points, and what the model thinks of
+/// the result. Where a wrong decode costs fewer nats in all than the truth, the model prefers
+/// it and a wider search would not find the truth; where it costs more, decoding missed it.
+pub fn greedy_scores(
+    model: &FaceModel,
+    set: &EvalSet,
+) -> Result<Vec<GreedyScore>, crate::model::ModelError> {
+    let mut out = Vec::with_capacity(set.items.len());
+    for (_, sample) in &set.items {
+        let batch = TrainBatch::new(&[example(sample)], model.device())?;
+        let latents = model.encode(&batch.points, &batch.normals, &batch.query_indices)?;
+        let faces =
+            greedy_decode(model, &latents, GenerateOptions::default())?.pop().unwrap_or_default();
+        let decoded = TrainExample { faces: &faces, ..example(sample) };
+        let split = model.coordinate_nll(&TrainBatch::new(&[decoded], model.device())?)?;
+        let loss = split.first().map_or(f64::NAN, |c| f64::from(c.per_position(faces.len())));
+        out.push(GreedyScore { faces: faces.len(), loss, same: faces == sample.faces });
+    }
+    Ok(out)
+}
+
 /// Greedy reconstructions of every mesh of the set, `batch` sequences decoded together.
 pub fn reconstruct(
     model: &FaceModel,
@@ -412,6 +451,32 @@ mod tests {
             / positions.iter().sum::<f64>();
         let whole = teacher_forced_loss(&model, &set, 0..3, 3, |i| i).unwrap().mean().unwrap();
         assert!((weighted - whole).abs() < 1e-4, "{weighted} vs {whole}");
+    }
+
+    #[test]
+    fn greedy_scores_find_the_decode_of_a_mesh_that_is_its_own_decode() {
+        let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+        let (_, model) = random_model(&cfg);
+        let set = EvalSet::build(None, 0, 2, &sample_config(&cfg), cfg.max_faces).unwrap();
+        let scores = greedy_scores(&model, &set).unwrap();
+        assert_eq!(scores.len(), 2);
+        assert!(scores.iter().all(|s| s.loss.is_finite() && s.loss > 0.0), "{scores:?}");
+
+        // Give each mesh the faces greedy decoding makes from its points: the decode is then
+        // the truth, and its loss is the truth's loss.
+        let decodes = reconstruct(&model, &set, 2, &Device::Cpu).unwrap();
+        let mut own = EvalSet { items: set.items.clone(), from_folder: 0 };
+        for ((_, sample), faces) in own.items.iter_mut().zip(decodes) {
+            sample.faces = faces;
+        }
+        let scores = greedy_scores(&model, &own).unwrap();
+        let losses = loss_per_mesh(&model, &own).unwrap();
+        for ((score, loss), (_, sample)) in scores.iter().zip(&losses).zip(&own.items) {
+            assert!(score.same, "{score:?}");
+            assert_eq!(score.faces, sample.faces.len());
+            assert!((score.loss - loss).abs() < 1e-4 * loss, "{score:?} against {loss}");
+            assert!((score.nll() - loss * (score.faces + 1) as f64).abs() < 1e-3);
+        }
     }
 
     #[test]
