@@ -496,10 +496,12 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
                 values.map(|v| format!(" {v:.3} |")).collect()
             });
             let greedy = r.greedy.map_or_else(String::new, |g| {
-                let (made, likelier) = match r.prefers_greedy() {
-                    _ if g.same => ("the truth", "-"),
-                    Some(true) => ("another mesh", "greedy's"),
-                    _ => ("another mesh", "the truth"),
+                let (made, likelier) = if g.same {
+                    ("the truth", "-")
+                } else if r.prefers_greedy() == Some(true) {
+                    ("another mesh", "greedy's")
+                } else {
+                    ("another mesh", "the truth")
                 };
                 format!(" {} | {:.3} | {made} | {likelier} |", g.faces, g.loss)
             });
