@@ -15,7 +15,7 @@ use crate::model::{
     FaceModel, FaceToken, FinishReason, GenerateOptions, Generation, ModelError, SamplingParams,
     step_generations,
 };
-use crate::tokenize::{Quantizer, detokenize};
+use crate::tokenize::{Quantizer, canonical_triangulation_near_grid, detokenize};
 
 /// The most candidates a reconstruction may ask for: each is a decoder row.
 pub const MAX_CANDIDATES: usize = 16;
@@ -135,8 +135,10 @@ pub fn closest_to_input<'a>(
 }
 
 /// The mesh of `faces` (normalized frame) with its corners fitted to the input `cloud` (see
-/// [`fit_to_points`]): how a reconstruction ends, once its candidate is chosen. A mesh with no
-/// area has nothing to fit and comes as decoded.
+/// [`fit_to_points`]) and its flat polygons split again for the moved corners (see
+/// [`canonical_triangulation_near_grid`]; vertices keep their order): how a reconstruction
+/// ends, once its candidate is chosen. A mesh with no area has nothing to fit and comes as
+/// decoded.
 pub fn fitted_mesh(
     faces: &[FaceToken],
     q: Quantizer,
@@ -145,10 +147,13 @@ pub fn fitted_mesh(
     seed: u64,
 ) -> Mesh {
     let decoded = detokenize(faces, q);
-    fit_to_points(&decoded, cloud, options, seed).unwrap_or_else(|e| {
-        tracing::debug!("the mesh is not fitted: {e}");
-        decoded
-    })
+    match fit_to_points(&decoded, cloud, options, seed) {
+        Ok(fitted) => canonical_triangulation_near_grid(&fitted, q),
+        Err(e) => {
+            tracing::debug!("the mesh is not fitted: {e}");
+            decoded
+        }
+    }
 }
 
 /// Decodes `n` candidates from options `base` (see [`candidate_options`]) and returns the one

@@ -30,8 +30,8 @@ pub struct ReconstructArgs {
     /// closest to the input points: better meshes for more decoding work; 1 decodes one mesh.
     #[arg(long, default_value_t = DEFAULT_CANDIDATES, value_parser = candidate_count())]
     candidates: usize,
-    /// Rounds of moving the chosen mesh's corners to fit the input points (faces unchanged);
-    /// 0 keeps them where the model put them.
+    /// Rounds of moving the chosen mesh's corners to fit the input points (the same faces,
+    /// flat polygons split again for the moved corners); 0 keeps them where the model put them.
     #[arg(long, default_value_t = FitOptions::default().rounds)]
     fit_rounds: usize,
     /// The furthest fitting may move a corner, in units of half the input's longest side.

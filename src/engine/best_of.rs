@@ -11,7 +11,7 @@ use tokio::sync::mpsc;
 use crate::candidates::{candidate_sampling, closest_to_input, fitted_mesh};
 use crate::mesh::{FitOptions, Mesh};
 use crate::model::FaceToken;
-use crate::tokenize::{Quantizer, face_positions};
+use crate::tokenize::{Quantizer, canonical_face, canonical_start, detokenize, face_positions};
 
 use super::{
     Completed, Conditioning, Engine, EngineError, Event, Request, RequestStream, StreamedFace,
@@ -63,14 +63,14 @@ pub(super) fn submit(
         // Judging and fitting are CPU work: off the async runtime.
         let chosen = tokio::task::spawn_blocking(move || {
             let best = pick(finished, q, &cloud.vertices, seed)?;
-            let corners = corners(&best.tokens, q, &cloud, fit.as_ref(), seed);
-            Ok((best, corners))
+            let faces = faces_to_stream(&best.tokens, q, &cloud, fit.as_ref(), seed);
+            Ok((best, faces))
         })
         .await
         .unwrap_or_else(|e| Err(EngineError::Model(format!("choosing a candidate failed: {e}"))));
         let event = match chosen {
-            Ok((mut best, corners)) => {
-                for (index, (&token, corners)) in best.tokens.iter().zip(corners).enumerate() {
+            Ok((mut best, faces)) => {
+                for (index, (token, corners)) in faces.into_iter().enumerate() {
                     let vertices = corners.map(|p| normalization.invert(p));
                     let face = StreamedFace { index, token, vertices };
                     if tx.send(Event::Face(face)).await.is_err() {
@@ -89,21 +89,33 @@ pub(super) fn submit(
     Ok(RequestStream::new(request.id, rx))
 }
 
-/// The corners of `tokens`' faces (normalized frame), fitted to `cloud` when `fit` is given.
-fn corners(
+/// The faces to stream for `tokens`: each face's grid cells and its corners (normalized
+/// frame). Fitted to `cloud` when `fit` is given: the corners move, and the flat polygons are
+/// re-split for them ([`fitted_mesh`]), so a face's cells are those its fitted corners were
+/// decoded at.
+fn faces_to_stream(
     tokens: &[FaceToken],
     q: Quantizer,
     cloud: &Mesh,
     fit: Option<&FitOptions>,
     seed: u64,
-) -> Vec<[[f32; 3]; 3]> {
-    match fit {
-        None => tokens.iter().map(|t| face_positions(t, q)).collect(),
-        Some(fit) => {
-            let mesh = fitted_mesh(tokens, q, cloud, fit, seed);
-            mesh.faces.iter().map(|f| mesh.triangle(f)).collect()
-        }
-    }
+) -> Vec<(FaceToken, [[f32; 3]; 3])> {
+    let Some(fit) = fit else {
+        return tokens.iter().map(|t| (*t, face_positions(t, q))).collect();
+    };
+    let mesh = fitted_mesh(tokens, q, cloud, fit, seed);
+    // The fit moves the decoded mesh's vertices and keeps their order.
+    let decoded = detokenize(tokens, q);
+    let cell = |v: u32| decoded.vertices.get(v as usize).map(|p| p.map(|c| q.quantize(c)));
+    mesh.faces
+        .iter()
+        .filter_map(|face| {
+            let cells = [cell(face[0])?, cell(face[1])?, cell(face[2])?];
+            let (token, first) = (canonical_face(cells)?, canonical_start(cells)?);
+            let corners = mesh.triangle(face);
+            Some((token, std::array::from_fn(|i| corners[(first + i) % 3])))
+        })
+        .collect()
 }
 
 /// The finished candidate closest to `points` (the first on ties); the first error when none
@@ -120,5 +132,65 @@ fn pick(
     match closest_to_input(faces, q, points, seed) {
         Some(best) => Ok(completed.swap_remove(best)),
         None => Err(failed.into_iter().find_map(Result::err).unwrap_or(EngineError::Stopped)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+    use crate::mesh::sample_surface;
+    use crate::tokenize::canonical_triangulation;
+
+    /// A box's sides as corner loops (`cuboid`'s vertex numbering), counter-clockwise seen from
+    /// outside.
+    const SIDES: [[u32; 4]; 6] =
+        [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
+
+    #[test]
+    fn fitted_faces_stream_with_the_truths_splits_and_their_own_cells() {
+        let q = Quantizer::default();
+        let truth = cuboid([2.0, 1.2, 0.8]);
+        let cloud = sample_surface(&truth, 4096, 0).unwrap();
+        let faces_of = |corners: &mut dyn Iterator<Item = [[f32; 3]; 3]>| {
+            let mut tokens: Vec<FaceToken> = corners
+                .map(|c| canonical_face(c.map(|p| p.map(|x| q.quantize(x)))).unwrap())
+                .collect();
+            tokens.sort_unstable();
+            tokens
+        };
+        let right = canonical_triangulation(&truth, q);
+        let expected = faces_of(&mut right.faces.iter().map(|f| right.triangle(f)));
+        // Decoded a little small.
+        let small: Vec<[f32; 3]> = truth.vertices.iter().map(|v| v.map(|c| c * 0.97)).collect();
+        for diagonals in 0..64u32 {
+            let faces = SIDES
+                .iter()
+                .enumerate()
+                .flat_map(|(side, &[a, b, c, d])| -> [[u32; 3]; 2] {
+                    if diagonals >> side & 1 == 0 {
+                        [[a, b, c], [a, c, d]]
+                    } else {
+                        [[b, c, d], [b, d, a]]
+                    }
+                })
+                .collect::<Vec<_>>();
+            // As a model may decode them: each side split as it comes, not as training splits.
+            let cell = |v: u32| small[v as usize].map(|c| q.quantize(c));
+            let decoded: Vec<FaceToken> = faces
+                .iter()
+                .map(|&[a, b, c]: &[u32; 3]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
+                .collect();
+            let streamed = faces_to_stream(&decoded, q, &cloud, Some(&FitOptions::default()), 0);
+            assert_eq!(faces_of(&mut streamed.iter().map(|(_, c)| *c)), expected, "{diagonals}");
+            for (token, corners) in &streamed {
+                // The token is the face on the decoded grid, corner for corner.
+                let cells = face_positions(token, q);
+                for (cell, corner) in cells.iter().zip(corners) {
+                    let gap = (0..3).map(|i| (cell[i] - corner[i]).abs()).fold(0.0, f32::max);
+                    assert!(gap < 0.06, "{diagonals}: {token:?} against {corners:?}");
+                }
+            }
+        }
     }
 }

@@ -247,7 +247,8 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
         let plain = engine.submit(plain).unwrap().collect().await.unwrap();
         (plain, engine.submit(fitted).unwrap().collect().await.unwrap())
     });
-    // The same faces, decoded alone as without fitting; only their corners moved.
+    // The same faces as decoded without fitting (this model's have no flat polygons to split
+    // again); only their corners moved.
     assert_eq!(fitted.tokens, plain.tokens);
     assert_eq!(fitted.mesh.faces.len(), plain.mesh.faces.len());
     assert_ne!(fitted.mesh.vertices, plain.mesh.vertices);

@@ -12,11 +12,15 @@ mod quantize;
 mod tokens;
 
 pub use error::TokenizeError;
-pub use order::{FaceToken, ZyxVertex, canonical_face, face_vertices, is_canonical_face};
+pub use order::{
+    FaceToken, ZyxVertex, canonical_face, canonical_start, face_vertices, is_canonical_face,
+};
 pub use per_coordinate::{
     SequenceStats, faces_from_per_coordinate, per_coordinate_tokens, sequence_stats,
 };
-pub use polygons::{canonical_polygons, canonical_triangulation};
+pub use polygons::{
+    canonical_polygons, canonical_triangulation, canonical_triangulation_near_grid,
+};
 pub use quantize::{DEFAULT_LEVELS, MAX_LEVELS, MIN_LEVELS, Quantizer};
 pub use tokens::{
     Tokenized, detokenize, face_positions, is_canonical_sequence, tokenize, tokenize_mesh,

@@ -28,12 +28,19 @@ pub(crate) fn face_from_vertices([a, b, c]: [ZyxVertex; 3]) -> FaceToken {
 /// to (z, y, x), rotates cyclically so the smallest (z, y, x) vertex comes first (the winding is
 /// kept); `None` if two vertices are equal (the face collapsed).
 pub fn canonical_face(v: [[u16; 3]; 3]) -> Option<FaceToken> {
+    let first = canonical_start(v)?;
+    let v = v.map(swap_xz);
+    Some(face_from_vertices([v[first], v[(first + 1) % 3], v[(first + 2) % 3]]))
+}
+
+/// Which of the three (x, y, z) vertices [`canonical_face`] puts first; `None` if two are
+/// equal.
+pub fn canonical_start(v: [[u16; 3]; 3]) -> Option<usize> {
     let v = v.map(swap_xz);
     if v[0] == v[1] || v[1] == v[2] || v[0] == v[2] {
         return None;
     }
-    let first = (0..3).min_by_key(|&i| v[i])?;
-    Some(face_from_vertices([v[first], v[(first + 1) % 3], v[(first + 2) % 3]]))
+    (0..3).min_by_key(|&i| v[i])
 }
 
 /// The face starts at its strictly smallest vertex and no two vertices are equal. (Whether the
