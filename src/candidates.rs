@@ -134,24 +134,23 @@ pub fn closest_to_input<'a>(
     (0..distances.len()).min_by(|&a, &b| distances[a].total_cmp(&distances[b]))
 }
 
-/// The mesh of `faces` (normalized frame) with its corners fitted to the input `cloud` (see
+/// The `decoded` mesh (normalized frame) with its corners fitted to the input `cloud` (see
 /// [`fit_to_points`]) and its flat polygons split again for the moved corners (see
 /// [`canonical_triangulation_near_grid`]; vertices keep their order): how a reconstruction
 /// ends, once its candidate is chosen. A mesh with no area has nothing to fit and comes as
 /// decoded.
 pub fn fitted_mesh(
-    faces: &[FaceToken],
+    decoded: &Mesh,
     q: Quantizer,
     cloud: &Mesh,
     options: &FitOptions,
     seed: u64,
 ) -> Mesh {
-    let decoded = detokenize(faces, q);
-    match fit_to_points(&decoded, cloud, options, seed) {
+    match fit_to_points(decoded, cloud, options, seed) {
         Ok(fitted) => canonical_triangulation_near_grid(&fitted, q),
         Err(e) => {
             tracing::debug!("the mesh is not fitted: {e}");
-            decoded
+            decoded.clone()
         }
     }
 }

@@ -98,9 +98,10 @@ pub fn decode_to_file(
     };
     bar.finish_and_clear();
     anyhow::ensure!(!faces.is_empty(), "the model produced no faces ({reason:?})");
+    let decoded = detokenize(&faces, q);
     let mesh = match &from_points {
-        Some(p) if p.fit.rounds > 0 => fitted_mesh(&faces, q, p.cloud, &p.fit, seed),
-        _ => detokenize(&faces, q),
+        Some(p) if p.fit.rounds > 0 => fitted_mesh(&decoded, q, p.cloud, &p.fit, seed),
+        _ => decoded,
     };
     let mesh = normalization.invert_mesh(&mesh);
     write(&mesh, &args.output, args.format)?;

@@ -103,9 +103,9 @@ fn faces_to_stream(
     let Some(fit) = fit else {
         return tokens.iter().map(|t| (*t, face_positions(t, q))).collect();
     };
-    let mesh = fitted_mesh(tokens, q, cloud, fit, seed);
-    // The fit moves the decoded mesh's vertices and keeps their order.
     let decoded = detokenize(tokens, q);
+    // The fit moves the decoded mesh's vertices and keeps their order.
+    let mesh = fitted_mesh(&decoded, q, cloud, fit, seed);
     let cell = |v: u32| decoded.vertices.get(v as usize).map(|p| p.map(|c| q.quantize(c)));
     mesh.faces
         .iter()
@@ -138,14 +138,9 @@ fn pick(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::primitives::cuboid;
+    use crate::mesh::primitives::{cuboid, cuboid_split};
     use crate::mesh::sample_surface;
     use crate::tokenize::canonical_triangulation;
-
-    /// A box's sides as corner loops (`cuboid`'s vertex numbering), counter-clockwise seen from
-    /// outside.
-    const SIDES: [[u32; 4]; 6] =
-        [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
 
     #[test]
     fn fitted_faces_stream_with_the_truths_splits_and_their_own_cells() {
@@ -164,22 +159,12 @@ mod tests {
         // Decoded a little small.
         let small: Vec<[f32; 3]> = truth.vertices.iter().map(|v| v.map(|c| c * 0.97)).collect();
         for diagonals in 0..64u32 {
-            let faces = SIDES
-                .iter()
-                .enumerate()
-                .flat_map(|(side, &[a, b, c, d])| -> [[u32; 3]; 2] {
-                    if diagonals >> side & 1 == 0 {
-                        [[a, b, c], [a, c, d]]
-                    } else {
-                        [[b, c, d], [b, d, a]]
-                    }
-                })
-                .collect::<Vec<_>>();
+            let faces = cuboid_split([2.0, 1.2, 0.8], diagonals).faces;
             // As a model may decode them: each side split as it comes, not as training splits.
             let cell = |v: u32| small[v as usize].map(|c| q.quantize(c));
             let decoded: Vec<FaceToken> = faces
                 .iter()
-                .map(|&[a, b, c]: &[u32; 3]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
+                .map(|&[a, b, c]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
                 .collect();
             let streamed = faces_to_stream(&decoded, q, &cloud, Some(&FitOptions::default()), 0);
             assert_eq!(faces_of(&mut streamed.iter().map(|(_, c)| *c)), expected, "{diagonals}");

@@ -32,6 +32,23 @@ pub fn cuboid(size: [f32; 3]) -> Mesh {
     Mesh::new(vertices, faces)
 }
 
+/// `cuboid(size)` with each side split along the diagonal that `diagonals` picks (a bit per
+/// side): the 64 ways to triangulate one box, for tests of what must not depend on that.
+#[cfg(test)]
+pub(crate) fn cuboid_split(size: [f32; 3], diagonals: u32) -> Mesh {
+    // The sides as corner loops, counter-clockwise seen from outside.
+    const SIDES: [[u32; 4]; 6] =
+        [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
+    let faces = SIDES
+        .iter()
+        .enumerate()
+        .flat_map(|(side, &[a, b, c, d])| {
+            if diagonals >> side & 1 == 0 { [[a, b, c], [a, c, d]] } else { [[b, c, d], [b, d, a]] }
+        })
+        .collect();
+    Mesh::new(cuboid(size).vertices, faces)
+}
+
 /// A frustum along z from `-height/2` to `height/2` with `segments` sides: a prism when the
 /// radii are equal, a cone or pyramid when `top_radius` is 0 (the apex is then one vertex).
 ///

@@ -32,8 +32,9 @@ pub struct ReconstructOptions {
     /// face arrives at the end.
     pub candidates: Option<usize>,
     /// Rounds of moving the chosen mesh's corners to fit the input points (the same faces,
-    /// flat polygons split again for the moved corners; at most 200); 0 keeps them as decoded. Default: the server's setting for a whole mesh
-    /// (see `/v1/info`), 0 for a stream. Above 0, every face arrives at the end.
+    /// flat polygons split again for the moved corners; at most 200); 0 keeps them as decoded.
+    /// Default: the server's setting for a whole mesh (see `/v1/info`), 0 for a stream. Above
+    /// 0, every face arrives at the end.
     pub fit_rounds: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,

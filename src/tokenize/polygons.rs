@@ -261,27 +261,12 @@ mod tests {
 
     use super::near_flat::Quad;
     use super::*;
-    use crate::mesh::primitives::{cuboid, frustum};
+    use crate::mesh::primitives::{cuboid, cuboid_split, frustum};
     use crate::tokenize::{is_canonical_face, tokenize};
-
-    /// The sides of `cuboid`'s box as corner loops, counter-clockwise seen from outside.
-    const BOX_SIDES: [[u32; 4]; 6] =
-        [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
 
     /// The box with each side split along the diagonal that `diagonals` picks (bit per side).
     fn box_split(diagonals: u32) -> Mesh {
-        let faces = BOX_SIDES
-            .iter()
-            .enumerate()
-            .flat_map(|(side, &[a, b, c, d])| {
-                if diagonals >> side & 1 == 0 {
-                    [[a, b, c], [a, c, d]]
-                } else {
-                    [[b, c, d], [b, d, a]]
-                }
-            })
-            .collect();
-        Mesh::new(cuboid([0.9, 0.5, 0.3]).vertices, faces)
+        cuboid_split([0.9, 0.5, 0.3], diagonals)
     }
 
     fn sorted(mut faces: Vec<FaceToken>) -> Vec<FaceToken> {
