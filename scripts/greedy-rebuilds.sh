@@ -6,7 +6,9 @@
 # count moves with where the encoder's points fall (docs/decisions.md, "Even encoder points").
 # FIT_ROUNDS=40 counts them with the corners fitted to the points, as `meshstream reconstruct`
 # does by default (the faces stay the model's; their corners move onto the points).
-# Usage: [FIT_ROUNDS=N] scripts/greedy-rebuilds.sh [MODEL_DIR] [OUT_DIR] [SEEDS...] (seeds 0-4
+# CANDIDATES=N decodes N greedy meshes, each from its own draw of the points, and keeps the one
+# that ends closest to them: what `meshstream reconstruct --temperature 0` makes with N = 4.
+# Usage: [FIT_ROUNDS=N] [CANDIDATES=N] scripts/greedy-rebuilds.sh [MODEL_DIR] [OUT_DIR] [SEEDS...] (seeds 0-4
 # by default, no fitting by default)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,6 +17,7 @@ out=${2:-target/greedy-rebuilds}
 shift $(($# < 2 ? $# : 2))
 seeds=${*:-0 1 2 3 4}
 fit_rounds=${FIT_ROUNDS:-0}
+candidates=${CANDIDATES:-1}
 target="${CARGO_TARGET_DIR:-target}/release"
 cargo build --release --quiet --bin meshstream --bin meshstream-train
 
@@ -34,7 +37,7 @@ for set in held tuning; do
     # Two reconstructions at a time, one thread each.
     find "$gt" -name '*.ply' -printf '%f\n' | sed 's/\.ply$//' | xargs -P 2 -I{} env \
       RAYON_NUM_THREADS=1 "$target/meshstream" reconstruct "$gt/{}.ply" -o "$pred/{}.glb" \
-      --model "$model" --temperature 0 --candidates 1 --fit-rounds "$fit_rounds" --seed "$seed" 2>/dev/null
+      --model "$model" --temperature 0 --candidates "$candidates" --fit-rounds "$fit_rounds" --seed "$seed" 2>/dev/null
     "$target/meshstream" eval --pred "$pred" --gt "$gt" > "$pred/eval.txt"
     line=$(grep -o 'none extra: [0-9]* of [0-9]*' "$pred/eval.txt")
     read -r whole of <<<"$(echo "$line" | grep -o '[0-9]\+' | tr '\n' ' ')"

@@ -104,7 +104,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     for (input, what) in [(&dense, format!("{faces} faces")), (&points, "65,536 points".into())] {
         for oversampling in [1, 4] {
             let t = time_per_run(budget, || {
-                input_clouds(input, 1024, oversampling, REFERENCE_POINTS, 0)
+                input_clouds(input, 1024, oversampling, REFERENCE_POINTS, 0, 1)
             });
             table.add_row([
                 format!("input points (oversampling {oversampling})"),

@@ -9,7 +9,7 @@ use anyhow::Context;
 use candle_core::Tensor;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use meshstream::candidates::{best_of, fitted_mesh};
+use meshstream::candidates::{best_of, candidate_options};
 use meshstream::mesh::{FitOptions, Format, Mesh, Normalization, write_mesh_file};
 use meshstream::model::{
     DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, GenerateOptions, SamplingParams, generate,
@@ -48,22 +48,23 @@ pub fn progress(bar: ProgressBar, template: &str) -> ProgressBar {
     bar
 }
 
-/// What a reconstruction decodes from: its input points (normalized frame, with normals),
-/// how many candidate meshes to decode and judge against them, and how to fit the chosen one
-/// to them.
+/// What a reconstruction decodes from besides its latents: its input points (normalized
+/// frame, with normals), how many candidate meshes to decode and judge against them, and how
+/// to fit them to them.
 pub struct FromPoints<'a> {
     pub cloud: &'a Mesh,
     pub candidates: usize,
     pub fit: FitOptions,
 }
 
-/// Decodes `latents` (K, latent_dim) into faces (for a reconstruction, the candidate closest
-/// to the input points, fitted to them), takes them to the caller's frame with
-/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not 0. Reports what it
-/// wrote, timed from `start`.
+/// Decodes `latents` (each (K, latent_dim)) into faces, takes them to the caller's frame with
+/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not 0.
+/// A reconstruction has a set of latents per draw of its input points, candidate `i` decoding
+/// from the `i`-th (cycling), and writes the candidate that ends closest to its points; a
+/// generation decodes the first. Reports what it wrote, timed from `start`.
 pub fn decode_to_file(
     model: &FaceModel,
-    latents: &Tensor,
+    latents: &[Tensor],
     args: &DecodeArgs,
     from_points: Option<FromPoints>,
     seed: u64,
@@ -85,24 +86,24 @@ pub fn decode_to_file(
     let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let bar =
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
-    let (faces, reason) = match &from_points {
+    let (mesh, reason) = match from_points {
         Some(p) => {
-            let points = &p.cloud.vertices;
-            let best = best_of(model, latents, &options, p.candidates, points, q, || bar.inc(1))?;
-            (best.faces, best.finish)
+            let fit = (p.fit.rounds > 0).then_some(&p.fit);
+            let options = candidate_options(&options, p.candidates);
+            let (best, mesh) = best_of(model, latents, options, p.cloud, fit, q, || bar.inc(1))?;
+            (mesh, best.finish)
         }
-        None => generate(model, latents, options, |_| {
-            bar.inc(1);
-            ControlFlow::Continue(())
-        })?,
+        None => {
+            let latents = latents.first().context("nothing to decode from")?;
+            let (faces, reason) = generate(model, latents, options, |_| {
+                bar.inc(1);
+                ControlFlow::Continue(())
+            })?;
+            (detokenize(&faces, q), reason)
+        }
     };
     bar.finish_and_clear();
-    anyhow::ensure!(!faces.is_empty(), "the model produced no faces ({reason:?})");
-    let decoded = detokenize(&faces, q);
-    let mesh = match &from_points {
-        Some(p) if p.fit.rounds > 0 => fitted_mesh(&decoded, q, p.cloud, &p.fit, seed),
-        _ => decoded,
-    };
+    anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
     let mesh = normalization.invert_mesh(&mesh);
     write(&mesh, &args.output, args.format)?;
     eprintln!(

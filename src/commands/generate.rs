@@ -73,5 +73,13 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let latents = diffusion.latents(&run)?;
     let frame = Normalization::identity();
-    decode_to_file(&model, &latents, &args.decode, None, args.seed, frame, start)
+    decode_to_file(
+        &model,
+        std::slice::from_ref(&latents),
+        &args.decode,
+        None,
+        args.seed,
+        frame,
+        start,
+    )
 }

@@ -26,12 +26,15 @@ pub struct ReconstructArgs {
     /// cpu or cuda:N (with --features cuda).
     #[arg(long, default_value = "cpu")]
     device: String,
-    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points: better meshes for more decoding work; 1 decodes one mesh.
+    /// Decode this many meshes, each from its own draw of the input's points (the first as
+    /// asked; greedy ones when greedy, else one greedy and the rest sampled), and keep the one
+    /// that ends closest to the input points: better meshes for more decoding work; 1 decodes
+    /// one mesh.
     #[arg(long, default_value_t = DEFAULT_CANDIDATES, value_parser = candidate_count())]
     candidates: usize,
-    /// Rounds of moving the chosen mesh's corners to fit the input points (the same faces,
-    /// flat polygons split again for the moved corners); 0 keeps them where the model put them.
+    /// Rounds of moving each candidate's corners to fit the input points before they are
+    /// judged (the same faces, flat polygons split again for the moved corners); 0 keeps them
+    /// where the model put them.
     #[arg(long, default_value_t = FitOptions::default().rounds)]
     fit_rounds: usize,
     /// The furthest fitting may move a corner, in units of half the input's longest side.
@@ -50,16 +53,22 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let cfg = model.config().clone();
     let (input, normalization) = normalized_input(&args.input)?;
+    // A draw of the input's points per candidate (see `meshstream::candidates`).
     let clouds = input_clouds(
         &input,
         cfg.num_points,
         cfg.point_oversampling,
         args.reference_points,
         args.seed,
+        args.candidates,
     )
     .context("preparing the input points")?;
     let start = Instant::now();
-    let latents = model.encode_point_cloud(&clouds.encoder)?;
+    let latents = clouds
+        .encoder
+        .iter()
+        .map(|cloud| model.encode_point_cloud(cloud))
+        .collect::<Result<Vec<_>, _>>()?;
     let fit = FitOptions {
         rounds: args.fit_rounds,
         max_shift: args.fit_max_shift,

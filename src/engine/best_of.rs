@@ -1,25 +1,27 @@
 //! Best-of-N and fitted requests (`DecodeOptions::candidates`, `fit_rounds`): the candidates
-//! run as ordinary requests, batched with everything else, and a task streams the one closest
-//! to the input points once all have finished (see `crate::candidates`), its corners fitted to
-//! those points when asked. Its faces therefore arrive together at the end, not one by one.
+//! run as ordinary requests, each reading its own draw of the input's points, batched with
+//! everything else, and a task streams the one that ends closest to the input points once all
+//! have finished (see `crate::candidates`), its corners fitted to those points when asked.
+//! Its faces therefore arrive together at the end, not one by one.
 
 use std::time::Instant;
 
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{candidate_sampling, closest_to_input, fitted_mesh};
+use crate::candidates::{Finished, candidate_sampling, closest_finished};
 use crate::mesh::{FitOptions, Mesh};
 use crate::model::FaceToken;
-use crate::tokenize::{Quantizer, canonical_face, canonical_start, detokenize, face_positions};
+use crate::tokenize::{Quantizer, canonical_face, canonical_start, face_positions};
 
 use super::{
     Completed, Conditioning, Engine, EngineError, Event, Request, RequestStream, StreamedFace,
 };
 
 /// Submits `n` candidates of `request` (a points request, checked by the caller) and returns
-/// the stream of the one that fits the input's reference points best. Refused as a whole when any
-/// candidate is (the others are then cancelled). Needs a tokio runtime for its task.
+/// the stream of the one that ends closest to the input's reference points. Refused as a
+/// whole when any candidate is (the others are then cancelled). Needs a tokio runtime for its
+/// task.
 pub(super) fn submit(
     engine: &Engine,
     request: Request,
@@ -46,6 +48,7 @@ pub(super) fn submit(
         .map(|(i, sampling)| {
             let mut candidate = request.clone();
             candidate.id = format!("{}/candidate-{i}", request.id);
+            candidate.conditioning = Conditioning::Points(prepared.for_candidate(i));
             candidate.options.sampling = sampling;
             candidate.options.candidates = None;
             candidate.options.fit_rounds = None;
@@ -60,10 +63,13 @@ pub(super) fn submit(
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
-        // Judging and fitting are CPU work: off the async runtime.
+        // Fitting and judging are CPU work: off the async runtime.
         let chosen = tokio::task::spawn_blocking(move || {
-            let best = pick(finished, q, &cloud.vertices, seed)?;
-            let faces = faces_to_stream(&best.tokens, q, &cloud, fit.as_ref(), seed);
+            let (best, ended) = pick(finished, q, &cloud, fit.as_ref(), seed)?;
+            let faces = match fit {
+                Some(_) => fitted_faces(&ended, q),
+                None => best.tokens.iter().map(|t| (*t, face_positions(t, q))).collect(),
+            };
             Ok((best, faces))
         })
         .await
@@ -89,23 +95,12 @@ pub(super) fn submit(
     Ok(RequestStream::new(request.id, rx))
 }
 
-/// The faces to stream for `tokens`: each face's grid cells and its corners (normalized
-/// frame). Fitted to `cloud` when `fit` is given: the corners move, and the flat polygons are
-/// re-split for them ([`fitted_mesh`]), so a face's cells are those its fitted corners were
-/// decoded at.
-fn faces_to_stream(
-    tokens: &[FaceToken],
-    q: Quantizer,
-    cloud: &Mesh,
-    fit: Option<&FitOptions>,
-    seed: u64,
-) -> Vec<(FaceToken, [[f32; 3]; 3])> {
-    let Some(fit) = fit else {
-        return tokens.iter().map(|t| (*t, face_positions(t, q))).collect();
-    };
-    let decoded = detokenize(tokens, q);
-    // The fit moves the decoded mesh's vertices and keeps their order.
-    let mesh = fitted_mesh(&decoded, q, cloud, fit, seed);
+/// The faces to stream for a fitted candidate as it `ended`: each face's grid cells and its
+/// corners (normalized frame). A fitted mesh keeps the decoded one's vertices in order (its
+/// flat polygons split again, [`crate::candidates::fitted_mesh`]), so a face's cells are
+/// those its fitted corners were decoded at.
+fn fitted_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])> {
+    let (decoded, mesh) = (&ended.decoded, &ended.mesh);
     let cell = |v: u32| decoded.vertices.get(v as usize).map(|p| p.map(|c| q.quantize(c)));
     mesh.faces
         .iter()
@@ -118,19 +113,20 @@ fn faces_to_stream(
         .collect()
 }
 
-/// The finished candidate closest to `points` (the first on ties); the first error when none
-/// finished.
+/// The finished candidate that ends closest to `cloud` (the first on ties; fitted to it when
+/// `fit` is given) and how it ends; the first error when none finished.
 fn pick(
     finished: Vec<Result<Completed, EngineError>>,
     q: Quantizer,
-    points: &[[f32; 3]],
+    cloud: &Mesh,
+    fit: Option<&FitOptions>,
     seed: u64,
-) -> Result<Completed, EngineError> {
+) -> Result<(Completed, Finished), EngineError> {
     let (completed, failed): (Vec<_>, Vec<_>) = finished.into_iter().partition(Result::is_ok);
     let mut completed: Vec<Completed> = completed.into_iter().flatten().collect();
     let faces = completed.iter().map(|c| c.tokens.as_slice());
-    match closest_to_input(faces, q, points, seed) {
-        Some(best) => Ok(completed.swap_remove(best)),
+    match closest_finished(faces, q, cloud, fit, seed) {
+        Some(best) => Ok((completed.swap_remove(best.index), best)),
         None => Err(failed.into_iter().find_map(Result::err).unwrap_or(EngineError::Stopped)),
     }
 }
@@ -166,7 +162,9 @@ mod tests {
                 .iter()
                 .map(|&[a, b, c]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
                 .collect();
-            let streamed = faces_to_stream(&decoded, q, &cloud, Some(&FitOptions::default()), 0);
+            let fit = FitOptions::default();
+            let ended = closest_finished([&decoded[..]].into_iter(), q, &cloud, Some(&fit), 0);
+            let streamed = fitted_faces(&ended.unwrap(), q);
             assert_eq!(faces_of(&mut streamed.iter().map(|(_, c)| *c)), expected, "{diagonals}");
             for (token, corners) in &streamed {
                 // The token is the face on the decoded grid, corner for corner.

@@ -37,7 +37,9 @@ use crate::tokenize::Quantizer;
 pub use config::EngineConfig;
 pub use error::EngineError;
 pub use metrics::Metrics;
-pub use request::{Conditioning, DecodeOptions, ImagePrompt, PreparedPoints, Request};
+pub use request::{
+    Conditioning, DecodeOptions, EncoderPoints, ImagePrompt, PreparedPoints, Request,
+};
 pub use stream::{Completed, Event, RequestStream, StreamedFace, Summary};
 
 use scheduler::{Pending, QueueState, Scheduler, Shared};
@@ -233,11 +235,7 @@ impl Engine {
         let cfg = &self.model_config;
         match &request.conditioning {
             Conditioning::Points(p) => {
-                if p.points.len() != cfg.num_points
-                    || p.normals.len() != cfg.num_points
-                    || p.queries.len() != cfg.num_latents
-                    || p.queries.iter().any(|&i| i as usize >= p.points.len())
-                {
+                if !std::iter::once(&p.encoder).chain(&p.more_draws).all(|e| e.fits(cfg)) {
                     return Err(EngineError::InvalidInput(format!(
                         "prepared points do not match the model ({} points, {} queries)",
                         cfg.num_points, cfg.num_latents

@@ -10,15 +10,25 @@ use crate::model::{FaceConfig, SamplingParams};
 
 use super::EngineError;
 
-/// The encoder's input for one request, in the normalized frame, the denser reference its
-/// candidates are judged and fitted against, and the normalization that takes the result
-/// back to the caller's coordinates.
-#[derive(Debug, Clone)]
-pub struct PreparedPoints {
+/// One draw of a request's input points for the encoder, in the normalized frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EncoderPoints {
     pub points: Vec<[f32; 3]>,
     pub normals: Vec<[f32; 3]>,
     /// Farthest-point-sampled indices into `points`: the encoder's queries.
     pub queries: Vec<u32>,
+}
+
+/// A points request's input: what its encoder reads, the denser reference its candidates are
+/// judged and fitted against, and the normalization that takes the result back to the
+/// caller's coordinates.
+#[derive(Debug, Clone)]
+pub struct PreparedPoints {
+    /// What this request's encoder reads (the input's first draw).
+    pub encoder: EncoderPoints,
+    /// The input's further draws, one for each further candidate of a best-of-N request
+    /// (candidate `i` reads draw `i`, see [`crate::candidates`]); empty otherwise.
+    pub more_draws: Vec<EncoderPoints>,
     /// Up to [`crate::mesh::REFERENCE_POINTS`] points with normals by default (see [`input_clouds`]);
     /// shared, as every candidate of a request carries it.
     pub reference: Arc<Mesh>,
@@ -28,13 +38,15 @@ pub struct PreparedPoints {
 impl PreparedPoints {
     /// From a point cloud (normals kept, or estimated when absent) or a mesh (its surface is
     /// sampled), in the caller's own coordinates, with up to `reference` points to judge and
-    /// fit candidates against ([`crate::mesh::REFERENCE_POINTS`] unless a server is told otherwise). CPU
-    /// work: run it off the async runtime.
+    /// fit candidates against ([`crate::mesh::REFERENCE_POINTS`] unless a server is told
+    /// otherwise), and `draws` draws for the encoder (a request's candidate count). CPU work:
+    /// run it off the async runtime.
     pub fn from_mesh(
         input: &Mesh,
         cfg: &FaceConfig,
         reference: usize,
         seed: u64,
+        draws: usize,
     ) -> Result<Self, EngineError> {
         if input.vertices.is_empty() {
             return Err(EngineError::InvalidInput("the input has no points".into()));
@@ -47,8 +59,38 @@ impl PreparedPoints {
             cfg.point_oversampling,
             reference,
             seed,
+            draws,
         )?;
-        let cloud = clouds.encoder;
+        let mut encoder = clouds.encoder.into_iter().map(|cloud| EncoderPoints::new(cloud, cfg));
+        Ok(Self {
+            encoder: encoder
+                .next()
+                .ok_or_else(|| EngineError::Model("no points drawn".into()))??,
+            more_draws: encoder.collect::<Result<_, _>>()?,
+            reference: Arc::new(clouds.reference),
+            normalization,
+        })
+    }
+
+    /// What candidate `i` of this request reads: draw `i` (the draws taken in turn when there
+    /// are fewer), with the request's reference and normalization.
+    pub fn for_candidate(&self, i: usize) -> Self {
+        let draws = 1 + self.more_draws.len();
+        let encoder = match i % draws {
+            0 => &self.encoder,
+            d => &self.more_draws[d - 1],
+        };
+        Self {
+            encoder: encoder.clone(),
+            more_draws: Vec::new(),
+            reference: Arc::clone(&self.reference),
+            normalization: self.normalization,
+        }
+    }
+}
+
+impl EncoderPoints {
+    fn new(cloud: Mesh, cfg: &FaceConfig) -> Result<Self, EngineError> {
         let normals = cloud.normals.unwrap_or_default();
         if normals.len() != cloud.vertices.len()
             || normals.iter().chain(&cloud.vertices).flatten().any(|c| !c.is_finite())
@@ -61,13 +103,15 @@ impl PreparedPoints {
             .into_iter()
             .map(|i| i as u32)
             .collect();
-        Ok(Self {
-            points: cloud.vertices,
-            normals,
-            queries,
-            reference: Arc::new(clouds.reference),
-            normalization,
-        })
+        Ok(Self { points: cloud.vertices, normals, queries })
+    }
+
+    /// Whether it has the model's point and query counts, every query a point.
+    pub(super) fn fits(&self, cfg: &FaceConfig) -> bool {
+        self.points.len() == cfg.num_points
+            && self.normals.len() == cfg.num_points
+            && self.queries.len() == cfg.num_latents
+            && self.queries.iter().all(|&i| (i as usize) < self.points.len())
     }
 }
 
@@ -112,10 +156,11 @@ pub struct DecodeOptions {
     /// Partial faces kept by greedy decoding (`GenerateOptions::face_beam`); `None`: the
     /// model's default.
     pub face_beam: Option<usize>,
-    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points; points requests only. `None`: 1.
+    /// Decode this many meshes, each from its own draw of the input points (see
+    /// [`crate::candidates::candidate_sampling`]), and keep the one that ends closest to the
+    /// input points; points requests only. `None`: 1.
     pub candidates: Option<usize>,
-    /// Rounds of fitting the finished mesh's corners to the input points (`mesh::fit`);
+    /// Rounds of fitting each finished candidate's corners to the input points (`mesh::fit`);
     /// points requests only. Its faces then arrive together at the end, as with candidates.
     /// `None` or 0: the corners as decoded, faces as they come.
     pub fit_rounds: Option<usize>,
@@ -142,18 +187,39 @@ mod tests {
     fn a_mesh_is_sampled_for_the_reference_and_a_small_cloud_is_its_own() {
         let cfg = FaceConfig::tiny();
         let boxy = cuboid([2.0, 1.0, 0.5]).translated([10.0, 0.0, 0.0]);
-        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, REFERENCE_POINTS, 0).unwrap();
-        assert_eq!(prepared.points.len(), cfg.num_points);
+        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, REFERENCE_POINTS, 0, 1).unwrap();
+        assert_eq!(prepared.encoder.points.len(), cfg.num_points);
+        assert!(prepared.more_draws.is_empty());
         assert_eq!(prepared.reference.vertices.len(), REFERENCE_POINTS);
         // In the normalized frame, as the encoder's points are.
         let (lo, hi) = prepared.reference.bounds().unwrap();
         assert!(lo.iter().chain(&hi).all(|c| c.abs() <= 1.0 + 1e-5), "{lo:?} {hi:?}");
 
         let cloud = Mesh { faces: Vec::new(), ..sample_surface(&boxy, 3000, 1).unwrap() };
-        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, REFERENCE_POINTS, 0).unwrap();
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, REFERENCE_POINTS, 0, 1).unwrap();
         assert_eq!(prepared.reference.vertices, prepared.normalization.apply_mesh(&cloud).vertices);
         // A server told to judge against fewer takes a subset.
-        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 2000, 0).unwrap();
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 2000, 0, 1).unwrap();
         assert_eq!(prepared.reference.vertices.len(), 2000);
+    }
+
+    #[test]
+    fn each_candidate_reads_its_own_draw_of_the_points_and_shares_the_reference() {
+        let cfg = FaceConfig::tiny();
+        let boxy = cuboid([2.0, 1.0, 0.5]);
+        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 3).unwrap();
+        assert_eq!(prepared.more_draws.len(), 2);
+        let alone = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 1).unwrap();
+        assert_eq!(prepared.encoder, alone.encoder);
+        let candidates: Vec<PreparedPoints> = (0..4).map(|i| prepared.for_candidate(i)).collect();
+        assert_eq!(candidates[0].encoder, prepared.encoder);
+        assert_eq!(candidates[1].encoder, prepared.more_draws[0]);
+        assert_eq!(candidates[2].encoder, prepared.more_draws[1]);
+        assert_eq!(candidates[3].encoder, prepared.encoder, "the draws are taken in turn");
+        assert_ne!(candidates[1].encoder, candidates[0].encoder);
+        for c in &candidates {
+            assert!(c.more_draws.is_empty() && c.encoder.fits(&cfg));
+            assert!(Arc::ptr_eq(&c.reference, &prepared.reference));
+        }
     }
 }

@@ -426,9 +426,9 @@ pub(super) fn encode_batch(
     let flat = |pick: fn(&PreparedPoints) -> &[[f32; 3]]| -> Vec<f32> {
         clouds.iter().flat_map(|c| pick(c).iter().flatten().copied()).collect()
     };
-    let points = Tensor::from_vec(flat(|c| &c.points), (b, m, 3), device)?;
-    let normals = Tensor::from_vec(flat(|c| &c.normals), (b, m, 3), device)?;
-    let queries: Vec<u32> = clouds.iter().flat_map(|c| c.queries.iter().copied()).collect();
+    let points = Tensor::from_vec(flat(|c| &c.encoder.points), (b, m, 3), device)?;
+    let normals = Tensor::from_vec(flat(|c| &c.encoder.normals), (b, m, 3), device)?;
+    let queries: Vec<u32> = clouds.iter().flat_map(|c| c.encoder.queries.iter().copied()).collect();
     let queries = Tensor::from_vec(queries, (b, k), device)?;
     Ok(model.encode(&points, &normals, &queries)?)
 }

@@ -7,7 +7,7 @@ use crate::mesh::primitives::uv_sphere;
 use crate::mesh::{Mesh, REFERENCE_POINTS};
 use crate::model::testing::random_model;
 use crate::model::{GenerateOptions, Generation, generate, step_generations};
-use crate::tokenize::FaceToken;
+use crate::tokenize::{FaceToken, detokenize};
 
 fn engine(config: EngineConfig) -> (Engine, FaceModel) {
     // The engine's quantizer needs a real level count; the network stays tiny.
@@ -18,13 +18,19 @@ fn engine(config: EngineConfig) -> (Engine, FaceModel) {
 }
 
 fn request(model: &FaceModel, id: usize, max_faces: usize) -> Request {
+    request_with_draws(model, id, max_faces, 1)
+}
+
+/// A request whose input points are drawn `draws` times, one draw per candidate.
+fn request_with_draws(model: &FaceModel, id: usize, max_faces: usize, draws: usize) -> Request {
     // Spheres of different sizes and places: different latents, so different sequences.
     let r = 0.5 + id as f32 * 0.3;
     let shape = uv_sphere(r, 6 + id as u32 % 3, 4).translated([id as f32, -2.0, 0.5]);
     Request {
         id: format!("r{id}"),
         conditioning: Conditioning::Points(
-            PreparedPoints::from_mesh(&shape, model.config(), REFERENCE_POINTS, id as u64).unwrap(),
+            PreparedPoints::from_mesh(&shape, model.config(), REFERENCE_POINTS, id as u64, draws)
+                .unwrap(),
         ),
         options: DecodeOptions { max_faces: Some(max_faces), ..Default::default() },
         deadline: None,
@@ -205,21 +211,26 @@ fn invalid_options_are_refused_before_queueing() {
 #[test]
 fn a_best_of_request_streams_the_candidate_closest_to_its_points() {
     let (engine, model) = engine(EngineConfig::default());
-    let mut r = request(&model, 2, 15);
+    let mut r = request_with_draws(&model, 2, 15, 3);
     r.options.candidates = Some(3);
     let Conditioning::Points(p) = &r.conditioning else { unreachable!() };
-    let latents = scheduler_encode(&model, p);
     let base = GenerateOptions { max_faces: 15, ..GenerateOptions::default() };
+    // Each candidate decodes from its own draw of the points.
     let alone: Vec<Vec<FaceToken>> = candidate_options(&base, 3)
         .into_iter()
-        .map(|o| generate(&model, &latents, o, |_| ControlFlow::Continue(())).unwrap().0)
+        .enumerate()
+        .map(|(i, o)| {
+            let latents = scheduler_encode(&model, &p.for_candidate(i));
+            generate(&model, &latents, o, |_| ControlFlow::Continue(())).unwrap().0
+        })
         .collect();
+    assert!(alone[0] != alone[1] || alone[1] != alone[2], "the draws decode alike");
     // Judged as the engine judges them: against the request's reference points, not the
     // encoder's (two close candidates can rank differently against the two).
     let seed = r.options.sampling.seed;
     let distances: Vec<f64> = alone
         .iter()
-        .map(|f| input_distance(f, engine.quantizer, &p.reference.vertices, seed))
+        .map(|f| input_distance(&detokenize(f, engine.quantizer), &p.reference.vertices, seed))
         .collect();
     let best = (0..3).min_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap();
     let done = runtime().block_on(async { engine.submit(r).unwrap().collect().await.unwrap() });
@@ -242,7 +253,7 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     let mut fitted = plain.clone();
     fitted.options.fit_rounds = Some(20);
     let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
-    let (points, normalization) = (p.points.clone(), p.normalization);
+    let (points, normalization) = (p.encoder.points.clone(), p.normalization);
     let (plain, fitted) = runtime().block_on(async {
         let plain = engine.submit(plain).unwrap().collect().await.unwrap();
         (plain, engine.submit(fitted).unwrap().collect().await.unwrap())

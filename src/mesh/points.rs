@@ -21,30 +21,35 @@ pub const NORMAL_NEIGHBOURS: usize = 16;
 /// as long (0.2 s against 0.05 s; `docs/decisions.md`, "Fitting").
 pub const REFERENCE_POINTS: usize = 16_384;
 
-/// What a reconstruction takes of its input: the encoder's points, and the denser reference
-/// it picks and fits its result against. Both have unit normals.
+/// What a reconstruction takes of its input: the encoder's points, one draw per candidate,
+/// and the denser reference it picks and fits its result against. All have unit normals.
 #[derive(Debug, Clone, PartialEq)]
 pub struct InputClouds {
-    pub encoder: Mesh,
+    /// `draws` of them, the `i`-th drawn with seed `seed + i` (candidate `i`'s, see
+    /// [`crate::candidates`]); the first is what a single decode reads.
+    pub encoder: Vec<Mesh>,
     pub reference: Mesh,
 }
 
-/// `n` points for the encoder and up to `reference` for the reference (as
+/// `n` points for the encoder, `draws` times, and up to `reference` for the reference (as
 /// [`reference_points`]), in `mesh`'s frame: sampled by area from a mesh's faces; from a
 /// point cloud, a seeded subset of its points (the encoder's repeated up to `n` when the
-/// cloud has fewer), its normals kept when it has them and estimated otherwise. With an
-/// `oversampling` above 1 the encoder's are [`spread_points`] of that many times as many
-/// (the model's [`crate::model::FaceConfig::point_oversampling`]).
+/// cloud has fewer), its normals kept when it has them and estimated otherwise (once for all
+/// draws). With an `oversampling` above 1 the encoder's are [`spread_points`] of that many
+/// times as many (the model's [`crate::model::FaceConfig::point_oversampling`]).
 pub fn input_clouds(
     mesh: &Mesh,
     n: usize,
     oversampling: usize,
     reference: usize,
     seed: u64,
+    draws: usize,
 ) -> Result<InputClouds, MeshError> {
     let source = Source::of(mesh)?;
     Ok(InputClouds {
-        encoder: source.spread(n, oversampling, seed)?,
+        encoder: (0..draws.max(1) as u64)
+            .map(|i| source.spread(n, oversampling, seed.wrapping_add(i)))
+            .collect::<Result<_, _>>()?,
         reference: source.at_most(reference, seed)?,
     })
 }
@@ -120,12 +125,17 @@ impl<'a> Source<'a> {
     }
 
     /// Exactly `n` points, spread over `oversampling` times as many when that is above 1 and
-    /// there are more than `n` to spread.
+    /// there are more than `n` to spread. The pool comes in a seeded order, so that the
+    /// spreading starts elsewhere for another seed even when the pool is a whole cloud.
     fn spread(&self, n: usize, oversampling: usize, seed: u64) -> Result<Mesh, MeshError> {
         if oversampling <= 1 {
             return self.exactly(n, seed);
         }
-        let pool = self.at_most(n.saturating_mul(oversampling), seed)?;
+        let mut pool_size = n.saturating_mul(oversampling);
+        if let Self::Cloud { points, .. } = self {
+            pool_size = pool_size.min(points.len());
+        }
+        let pool = self.exactly(pool_size, seed)?;
         if pool.vertices.len() <= n {
             return self.exactly(n, seed);
         }
@@ -256,15 +266,15 @@ mod tests {
     #[test]
     fn meshes_are_sampled_and_clouds_subsampled_or_repeated() {
         let sphere = uv_sphere(1.0, 32, 16);
-        let clouds = input_clouds(&sphere, 300, 1, 5000, 1).unwrap();
-        assert_eq!(clouds.encoder.vertices.len(), 300);
+        let clouds = input_clouds(&sphere, 300, 1, 5000, 1, 1).unwrap();
+        assert_eq!(clouds.encoder[0].vertices.len(), 300);
         assert_eq!(clouds.reference.vertices.len(), 5000);
         let points = Mesh { faces: Vec::new(), ..sample_surface(&sphere, 2000, 3).unwrap() };
         let m = points.vertices.len();
         for (n, reference) in [(100, 200), (m + 50, m + 50), (m + 50, m / 2)] {
-            let c = input_clouds(&points, n, 1, reference, 2).unwrap();
-            assert_eq!(c.encoder.vertices.len(), n);
-            assert_eq!(c.encoder.normals.as_ref().unwrap().len(), n);
+            let c = input_clouds(&points, n, 1, reference, 2, 1).unwrap();
+            assert_eq!(c.encoder[0].vertices.len(), n);
+            assert_eq!(c.encoder[0].normals.as_ref().unwrap().len(), n);
             // The reference never repeats a point, so it has at most the cloud's.
             let expected = reference.min(m);
             assert_eq!(c.reference.normals.as_ref().unwrap().len(), expected);
@@ -273,7 +283,7 @@ mod tests {
             distinct.dedup();
             assert_eq!(distinct.len(), expected);
         }
-        assert!(input_clouds(&Mesh::new(vec![[0.0; 3]; 2], vec![]), 10, 1, 10, 0).is_err());
+        assert!(input_clouds(&Mesh::new(vec![[0.0; 3]; 2], vec![]), 10, 1, 10, 0, 1).is_err());
     }
 
     #[test]
@@ -282,8 +292,8 @@ mod tests {
         let dense = sample_surface(&sphere, 20_000, 9).unwrap().vertices;
         let cloud = Mesh { faces: Vec::new(), ..sample_surface(&sphere, 30_000, 8).unwrap() };
         for input in [&sphere, &cloud] {
-            let spread = input_clouds(input, 256, 4, 1000, 5).unwrap().encoder;
-            let drawn = input_clouds(input, 256, 1, 1000, 5).unwrap().encoder;
+            let spread = input_clouds(input, 256, 4, 1000, 5, 1).unwrap().encoder.remove(0);
+            let drawn = input_clouds(input, 256, 1, 1000, 5, 1).unwrap().encoder.remove(0);
             assert_eq!(spread.normals.as_ref().map(Vec::len), Some(256));
             // How far the surface is from the nearest encoder point: on average, and at worst.
             let gaps = |points: &[[f32; 3]]| {
@@ -298,7 +308,7 @@ mod tests {
         }
         // A cloud's encoder points are its own, each once; a cloud too small to spread gives
         // the independent draw.
-        let spread = input_clouds(&cloud, 256, 4, 1000, 5).unwrap().encoder.vertices;
+        let spread = input_clouds(&cloud, 256, 4, 1000, 5, 1).unwrap().encoder.remove(0).vertices;
         assert!(spread.iter().all(|p| cloud.vertices.contains(p)));
         let mut distinct = spread.clone();
         distinct.sort_by(|a, b| a.partial_cmp(b).unwrap());
@@ -306,9 +316,31 @@ mod tests {
         assert_eq!(distinct.len(), 256);
         let small = Mesh { faces: Vec::new(), ..sample_surface(&sphere, 200, 8).unwrap() };
         assert_eq!(
-            input_clouds(&small, 256, 4, 1000, 5).unwrap(),
-            input_clouds(&small, 256, 1, 1000, 5).unwrap()
+            input_clouds(&small, 256, 4, 1000, 5, 1).unwrap(),
+            input_clouds(&small, 256, 1, 1000, 5, 1).unwrap()
         );
+    }
+
+    #[test]
+    fn each_draw_of_the_encoder_points_is_its_seed_s_own() {
+        let sphere = uv_sphere(1.0, 32, 16);
+        // A cloud the spreading takes whole (600 points for 256 from 4 times as many).
+        let cloud = Mesh { faces: Vec::new(), ..sample_surface(&sphere, 600, 8).unwrap() };
+        for input in [&sphere, &cloud] {
+            let clouds = input_clouds(input, 256, 4, 1000, 5, 3).unwrap();
+            assert_eq!(clouds.encoder.len(), 3);
+            for (i, draw) in clouds.encoder.iter().enumerate() {
+                let alone = input_clouds(input, 256, 4, 1000, 5 + i as u64, 1).unwrap();
+                assert_eq!(&alone.encoder[0], draw, "draw {i}");
+            }
+            assert_ne!(clouds.encoder[0], clouds.encoder[1]);
+            assert_ne!(clouds.encoder[1], clouds.encoder[2]);
+            // The reference is the request's, whatever the draws.
+            assert_eq!(
+                clouds.reference,
+                input_clouds(input, 256, 4, 1000, 5, 1).unwrap().reference
+            );
+        }
     }
 
     #[test]
@@ -316,7 +348,7 @@ mod tests {
         let sphere = uv_sphere(1.0, 16, 8);
         let points = Mesh { faces: Vec::new(), ..sample_surface(&sphere, 3000, 4).unwrap() };
         for (input, max) in [(&sphere, 500), (&points, 2500), (&points, 5000)] {
-            let clouds = input_clouds(input, 1024, 4, max, 7).unwrap();
+            let clouds = input_clouds(input, 1024, 4, max, 7, 1).unwrap();
             assert_eq!(reference_points(input, max, 7).unwrap(), clouds.reference);
         }
         // Given normals are kept (made unit), not estimated.

@@ -181,7 +181,8 @@ impl GrpcService {
                 None => return Err(ApiError::invalid("give points or a file")),
             };
             let parsed = options.checked(mesh)?;
-            let prepared = prepare(&engine, &parsed.input, &limits, parsed.seed)?;
+            let draws = parsed.decode.candidates.unwrap_or(1);
+            let prepared = prepare(&engine, &parsed.input, &limits, parsed.seed, draws)?;
             Ok((parsed, prepared))
         })
         .await

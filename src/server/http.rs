@@ -130,7 +130,8 @@ async fn reconstruct(
                 parsed.decode.candidates.get_or_insert(candidates);
                 parsed.decode.fit_rounds.get_or_insert(fit_rounds);
             }
-            let conditioning = prepare(&engine, &parsed.input, &limits, parsed.seed)?;
+            let draws = parsed.decode.candidates.unwrap_or(1);
+            let conditioning = prepare(&engine, &parsed.input, &limits, parsed.seed, draws)?;
             Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
         })
         .await

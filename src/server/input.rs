@@ -26,12 +26,13 @@ pub struct ReconstructOptions {
     /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
     /// at most 32); 1 picks coordinate by coordinate.
     pub face_beam: Option<usize>,
-    /// Decode this many meshes (the first as asked, the others sampled) and keep the one
-    /// closest to the input points (at most 16). Default: the server's setting (4 unless
+    /// Decode this many meshes, each from its own draw of the input points (all greedy for a
+    /// greedy request; otherwise the first as asked, one greedy and the rest sampled), and keep
+    /// the one that ends closest to the input points, fitted when it is (at most 16). Default: the server's setting (4 unless
     /// configured, see `/v1/info`) for a whole mesh, 1 for a stream. With more than 1, every
     /// face arrives at the end.
     pub candidates: Option<usize>,
-    /// Rounds of moving the chosen mesh's corners to fit the input points (the same faces,
+    /// Rounds of moving each candidate's corners to fit the input points (the same faces,
     /// flat polygons split again for the moved corners; at most 200); 0 keeps them as decoded.
     /// Default: the server's setting for a whole mesh (see `/v1/info`), 0 for a stream. Above
     /// 0, every face arrives at the end.

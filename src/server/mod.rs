@@ -109,16 +109,17 @@ pub(crate) fn no_image_model() -> ApiError {
     ))
 }
 
-/// The encoder's input for a mesh or point cloud in the caller's coordinates, and the
-/// reference points its candidates are judged against. CPU work.
+/// The encoder's input for a mesh or point cloud in the caller's coordinates, a draw for each
+/// of its `candidates`, and the reference points they are judged against. CPU work.
 pub(crate) fn prepare(
     engine: &Engine,
     input: &Mesh,
     limits: &InputLimits,
     seed: u64,
+    candidates: usize,
 ) -> Result<Conditioning, ApiError> {
-    let points =
-        PreparedPoints::from_mesh(input, engine.model_config(), limits.reference_points, seed)?;
+    let cfg = engine.model_config();
+    let points = PreparedPoints::from_mesh(input, cfg, limits.reference_points, seed, candidates)?;
     Ok(Conditioning::Points(points))
 }
 
