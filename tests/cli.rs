@@ -197,8 +197,10 @@ fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
     assert!(!mesh.faces.is_empty() && mesh.faces.len() <= 30);
     let (lo, hi) = mesh.bounds().unwrap();
     for a in 0..3 {
-        // Within the input's bounding cube (half the longest side, 5, around its centre).
-        assert!(lo[a] >= offset[a] - 5.01 && hi[a] <= offset[a] + 5.01, "{lo:?} {hi:?}");
+        // Within the input's bounding cube (half the longest side, 5, around its centre),
+        // widened by the point spacing a fitted corner may go past it: 16,384 points on the
+        // box's 136 square units lie about 0.09 apart.
+        assert!(lo[a] >= offset[a] - 5.1 && hi[a] <= offset[a] + 5.1, "{lo:?} {hi:?}");
     }
 
     let missing =
