@@ -8,6 +8,7 @@
 //! The candidates decode as one batch, so N of them cost less than N single decodes.
 
 use candle_core::Tensor;
+use rayon::prelude::*;
 
 use crate::mesh::{FitOptions, Mesh, fit_to_points, sample_surface};
 use crate::metrics::point_set_distances;
@@ -138,7 +139,11 @@ pub fn closest_finished<'a>(
     seed: u64,
 ) -> Option<Finished> {
     let judge = candidates.len() > 1; // one has nothing to be compared with
-    candidates
+    // Each candidate's fit and judgement is its own: they run in parallel, and the fold
+    // after them keeps the first on ties.
+    let candidates: Vec<&[FaceToken]> = candidates.collect();
+    let ended: Vec<(f64, Finished)> = candidates
+        .into_par_iter()
         .enumerate()
         .map(|(index, faces)| {
             let decoded = detokenize(faces, q);
@@ -149,6 +154,9 @@ pub fn closest_finished<'a>(
             let distance = if judge { input_distance(&mesh, &cloud.vertices, seed) } else { 0.0 };
             (distance, Finished { index, decoded, mesh })
         })
+        .collect();
+    ended
+        .into_iter()
         .reduce(|best, next| if next.0 < best.0 { next } else { best })
         .map(|(_, finished)| finished)
 }
