@@ -15,7 +15,8 @@ use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start, face_positions};
 
 use super::{
-    Completed, Conditioning, Engine, EngineError, Event, Request, RequestStream, StreamedFace,
+    Completed, Conditioning, DecodeOptions, Engine, EngineError, Event, Request, RequestStream,
+    StreamedFace,
 };
 
 /// Submits `n` candidates of `request` (a points request, checked by the caller) and returns
@@ -46,13 +47,18 @@ pub(super) fn submit(
         .into_iter()
         .enumerate()
         .map(|(i, sampling)| {
-            let mut candidate = request.clone();
-            candidate.id = format!("{}/candidate-{i}", request.id);
-            candidate.conditioning = Conditioning::Points(prepared.for_candidate(i));
-            candidate.options.sampling = sampling;
-            candidate.options.candidates = None;
-            candidate.options.fit_rounds = None;
-            engine.submit_one(candidate)
+            // Built, not cloned from the request: its conditioning carries every draw.
+            engine.submit_one(Request {
+                id: format!("{}/candidate-{i}", request.id),
+                conditioning: Conditioning::Points(prepared.for_candidate(i)),
+                options: DecodeOptions {
+                    sampling,
+                    candidates: None,
+                    fit_rounds: None,
+                    ..request.options.clone()
+                },
+                deadline: request.deadline,
+            })
         })
         .collect::<Result<Vec<_>, _>>()?;
     let (tx, rx) = mpsc::channel(engine.shared.config.stream_buffer);
