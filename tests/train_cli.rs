@@ -97,9 +97,11 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_eq!((&mix["Box"], &mix["LExtrusion"]), (&3.into(), &0.into()));
     assert_eq!(config["batch"]["sample"]["point_oversampling"], 4);
     assert_eq!(config["model"]["point_oversampling"], 4);
+    // The f32 export passes the default shard size: `--init` read it from shards.
     let weights = |dir: &Path| {
-        candle_core::safetensors::load(dir.join("model.safetensors"), &candle_core::Device::Cpu)
+        meshstream::model::checkpoint::read_model_weights(dir, &candle_core::Device::Cpu)
             .unwrap()
+            .tensors
     };
     let (before, after) = (weights(&init), weights(&frozen.join("checkpoint")));
     let unchanged = |name: &String| {
@@ -162,8 +164,11 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     {
         // Whoever may read the config may read the weights (safetensors alone writes 0600).
         use std::os::unix::fs::PermissionsExt;
-        let mode = |f: &str| std::fs::metadata(model.join(f)).unwrap().permissions().mode();
-        assert_eq!(mode("model.safetensors"), mode("config.json"));
+        let mode = |f: &Path| std::fs::metadata(f).unwrap().permissions().mode();
+        let config = mode(&model.join("config.json"));
+        for file in meshstream::model::checkpoint::weight_files(&model).unwrap() {
+            assert_eq!(mode(&file), config, "{}", file.display());
+        }
     }
 
     assert_plots(&resumed, &tmp.path().join("curves.png"));

@@ -3,6 +3,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::{Context, bail};
 use candle_core::DType;
@@ -13,7 +14,8 @@ use meshstream::model::{CoordinateNll, EncoderTraining, FaceConfig, parse_device
 use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
-use meshstream::train::checkpoint::{RunDir, average_dir, export};
+use meshstream::train::checkpoint::{RunDir, average_dir, export, parse_shard_size};
+use meshstream::train::device_check::check_device;
 use meshstream::train::dit::DitTrainConfig;
 use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
 use meshstream::train::dit::evaluate::DitEvalOptions;
@@ -27,8 +29,7 @@ use meshstream::train::log::read_log;
 use meshstream::train::optim::OptimConfig;
 use meshstream::train::plot::plot_curves;
 use meshstream::train::procedural::{ProceduralShapes, ShapeKind};
-use meshstream::train::run_loop::Plan;
-use meshstream::train::run_loop::{self, Steps};
+use meshstream::train::run_loop::{self, Plan, SessionLimits, Steps};
 use meshstream::train::trainer::{TrainConfig, Trainer, stop_flag_on_ctrl_c};
 
 /// Train FACE models on your meshes (and on procedural low-poly shapes), export the weights
@@ -46,7 +47,8 @@ enum Command {
     Ae(Box<AeArgs>),
     /// Train the image-to-latent diffusion model (DiT) against a frozen autoencoder.
     Dit(Box<DitArgs>),
-    /// Write just what inference needs (config.json + model.safetensors) from a run or checkpoint.
+    /// Write just what inference needs (config.json + model.safetensors, or its shards) from a
+    /// run or checkpoint.
     Export {
         /// A run folder (its best weights, else its checkpoint's weight average, else the
         /// checkpoint itself), or a checkpoint or model folder.
@@ -56,6 +58,11 @@ enum Command {
         output: PathBuf,
         #[arg(long, value_enum, default_value_t = WeightType::F16)]
         dtype: WeightType,
+        /// Tensor data per weights file (bytes, or with a unit: KB, MB, KiB, MiB, ...): larger
+        /// weights are written as model-0000I-of-0000N.safetensors shards plus
+        /// model.safetensors.index.json. The default keeps each file under 16 MiB.
+        #[arg(long, default_value = "15MiB", value_parser = parse_shard_size)]
+        max_shard_size: u64,
     },
     /// Write procedural low-poly shapes as PLY files, e.g. the held-aside evaluation set
     /// (the default seed), to score models and baselines on shapes never trained on.
@@ -82,6 +89,29 @@ enum Command {
     /// The teacher-forced loss of a model on meshes, mesh by mesh (nats per face, end of mesh
     /// included, as in training): which shapes it has learned, whatever decoding does.
     Loss(LossArgs),
+    /// Check that a device computes what the CPU does: a model's loss and gradient norm on
+    /// the same batch of held-aside procedural shapes, on both. Fails (exit status 1) beyond
+    /// the tolerance: run it before a GPU build trains anything.
+    CheckDevice {
+        /// A model folder (or a run folder: its best weights).
+        #[arg(long, default_value = "models/default")]
+        model: PathBuf,
+        /// The device to check against the CPU: cuda:N (with --features cuda), or cpu.
+        #[arg(long, default_value = "cuda:0")]
+        device: String,
+        #[arg(long, default_value_t = 8)]
+        meshes: usize,
+        /// Largest relative difference allowed in the loss and in the gradient norm.
+        #[arg(long, default_value_t = 1e-3)]
+        tolerance: f64,
+        /// On CUDA, let f32 matrix products run on TF32 tensor cores (inputs rounded to a 10-bit
+        /// mantissa, f32 accumulation; weights and optimizer state stay f32). No effect on the CPU.
+        #[arg(long)]
+        tf32: bool,
+        /// One JSON object instead of the lines.
+        #[arg(long)]
+        json: bool,
+    },
     /// Draw the loss and evaluation curves of a run's log.jsonl into a PNG.
     Plot {
         log: PathBuf,
@@ -145,10 +175,8 @@ struct AeArgs {
     /// Length of the run: the learning-rate schedule spans this many steps.
     #[arg(long, default_value_t = 10_000)]
     steps: u64,
-    /// End this session at this step (checkpointed; continue later with --resume). The
-    /// schedule still spans --steps.
-    #[arg(long)]
-    stop_at: Option<u64>,
+    #[command(flatten)]
+    session: SessionArgs,
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
     #[command(flatten)]
@@ -198,9 +226,38 @@ struct AeArgs {
     /// cpu or cuda:N (with --features cuda).
     #[arg(long, default_value = "cpu")]
     device: String,
+    /// On CUDA, let f32 matrix products run on TF32 tensor cores (inputs rounded to a 10-bit
+    /// mantissa, f32 accumulation; weights and optimizer state stay f32). No effect on the CPU.
+    #[arg(long)]
+    tf32: bool,
     /// No progress bar (logs only), e.g. under CI.
     #[arg(long)]
     no_progress: bool,
+}
+
+/// Where this session ends short of the schedule (continue later with --resume).
+#[derive(Args)]
+struct SessionArgs {
+    /// End this session at this step (checkpointed). The schedule still spans --steps.
+    #[arg(long)]
+    stop_at: Option<u64>,
+    /// End this session within this many seconds of wall time, its final evaluation and
+    /// checkpoint included (e.g. a rented GPU's slot). The schedule still spans --steps.
+    #[arg(long, value_parser = parse_seconds)]
+    time_budget: Option<Duration>,
+}
+
+impl SessionArgs {
+    fn limits(&self) -> SessionLimits {
+        SessionLimits { stop_at: self.stop_at, time_budget: self.time_budget }
+    }
+}
+
+fn parse_seconds(text: &str) -> Result<Duration, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s > 0.0 && s.is_finite() => Ok(Duration::from_secs_f64(s)),
+        _ => Err(format!("{text:?} is not a positive number of seconds")),
+    }
 }
 
 /// The schedule's end, clipping and cadence, the same for both trainers (the length, warm-up
@@ -289,9 +346,8 @@ struct DitArgs {
     /// Length of the run: the learning-rate schedule spans this many steps.
     #[arg(long, default_value_t = 20_000)]
     steps: u64,
-    /// End this session at this step (checkpointed; continue later with --resume).
-    #[arg(long)]
-    stop_at: Option<u64>,
+    #[command(flatten)]
+    session: SessionArgs,
     /// (latent, view) pairs per step.
     #[arg(long, default_value_t = 32)]
     batch: usize,
@@ -338,13 +394,13 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Ae(args) => train_ae(&args),
         Command::Dit(args) => train_dit(&args),
-        Command::Export { from, output, dtype } => {
+        Command::Export { from, output, dtype, max_shard_size } => {
             let from = model_folder(&from);
             let dtype = match dtype {
                 WeightType::F16 => DType::F16,
                 WeightType::F32 => DType::F32,
             };
-            export(&from, &output, dtype)
+            export(&from, &output, dtype, max_shard_size)
                 .with_context(|| format!("exporting {}", from.display()))?;
             eprintln!("exported {} to {}", from.display(), output.display());
             Ok(())
@@ -367,6 +423,41 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Loss(args) => loss_command(&args),
+        Command::CheckDevice { model, device, meshes, tolerance, tf32, json } => {
+            candle_core::cuda::set_gemm_reduced_precision_f32(tf32);
+            let folder = model_folder(&model);
+            let checked = parse_device(&device)?;
+            let report =
+                check_device(&folder, meshes, &candle_core::Device::Cpu, &checked, tolerance)
+                    .with_context(|| format!("checking {device} with {}", folder.display()))?;
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                for r in [&report.reference, &report.checked] {
+                    println!(
+                        "{}: loss {:.6}, gradient norm {:.6}, one step {:.1} ms; decoded greedily in {:.0} ms, CD {}",
+                        r.device,
+                        r.loss,
+                        r.grad_norm,
+                        r.step_ms,
+                        r.decode_ms,
+                        r.decoded_chamfer.map_or_else(|| "-".into(), |c| format!("{c:.4}"))
+                    );
+                }
+                println!(
+                    "{} meshes, {} face positions: relative difference loss {:.2e}, gradient norm {:.2e} (tolerance {:.0e})",
+                    report.meshes,
+                    report.positions,
+                    report.loss_rel_diff,
+                    report.grad_rel_diff,
+                    report.tolerance
+                );
+            }
+            if !report.passed() {
+                bail!("{device} does not compute what the CPU does (beyond {tolerance:e})");
+            }
+            Ok(())
+        }
         Command::Plot { log, output } => {
             let records = read_log(&log).with_context(|| format!("reading {}", log.display()))?;
             plot_curves(&records, &output)?;
@@ -543,6 +634,7 @@ fn model_folder(from: &Path) -> PathBuf {
 
 fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
     let device = parse_device(&args.device)?;
+    candle_core::cuda::set_gemm_reduced_precision_f32(args.tf32);
     let mut trainer = if args.resume {
         Trainer::resume(args.out.clone(), device, Some(args.steps))
             .with_context(|| format!("resuming {}", args.out.display()))?
@@ -551,7 +643,7 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
         Trainer::create(config_from_args(args)?, args.out.clone(), args.init.as_deref(), device)?
     };
     print_setup(&trainer.data_summary(), trainer.parameter_counts());
-    run_session(&mut trainer, &args.out, args.steps, args.stop_at, !args.no_progress)
+    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), !args.no_progress)
 }
 
 fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
@@ -566,7 +658,7 @@ fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
         DitTrainer::create(cfg, args.out.clone(), args.init.as_deref(), device, progress)?
     };
     print_setup(&trainer.data_summary(), trainer.parameter_counts());
-    run_session(&mut trainer, &args.out, args.steps, args.stop_at, progress)
+    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), progress)
 }
 
 /// A new run may not start in a folder that already holds one.
@@ -584,21 +676,27 @@ fn print_setup(data_summary: &str, parameter_counts: HashMap<&'static str, usize
     eprintln!("parameters by optimizer: {counts:?}");
 }
 
-/// Trains until `steps`, `stop_at` or Ctrl-C, then says how the session ended and what its
-/// last evaluation found.
+/// Trains until `steps`, one of `limits` or Ctrl-C, then says how the session ended and what
+/// its last evaluation found.
 fn run_session<T: Steps>(
     trainer: &mut T,
     out: &Path,
     steps: u64,
-    stop_at: Option<u64>,
+    limits: SessionLimits,
     progress: bool,
 ) -> anyhow::Result<()> {
     let stop = stop_flag_on_ctrl_c();
-    let summary = run_loop::run(trainer, &stop, stop_at, progress)?;
+    let summary = run_loop::run(trainer, &stop, limits, progress)?;
     let state = &summary.state;
     eprintln!(
         "{} at step {} after {:.0} s of training; checkpoint in {}",
-        if summary.interrupted || state.step < steps { "stopped" } else { "finished" },
+        if summary.out_of_time {
+            "out of time"
+        } else if summary.interrupted || state.step < steps {
+            "stopped"
+        } else {
+            "finished"
+        },
         state.step,
         state.elapsed_s,
         RunDir(out.to_path_buf()).checkpoint().display()

@@ -91,7 +91,9 @@ impl Dense {
                 Ok(y.reshape(out_dims)?)
             }
             Self::Infer { weight_t, bias } => {
-                let y = x.broadcast_matmul(weight_t)?;
+                // CUDA's matmul takes only row- or column-major operands; a context built by
+                // concatenating narrowed tensors is neither (the CPU takes any layout).
+                let y = x.contiguous()?.broadcast_matmul(weight_t)?;
                 Ok(match bias {
                     Some(b) => y.broadcast_add(b)?,
                     None => y,

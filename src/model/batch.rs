@@ -25,6 +25,13 @@ pub struct TrainBatch {
     /// (B, N_max, 9) u32, zero past each row's length.
     pub faces: Tensor,
     pub lengths: Vec<usize>,
+    /// The largest coordinate in `faces` and the largest query index, known on the host:
+    /// checking them there spares the device two copies back (stalls) in every forward pass.
+    pub max_coordinate: u16,
+    pub max_query_index: u32,
+    /// Each face's first coordinate, (B, N) on the host: the first sub-head's targets, made
+    /// without copying `faces` back from the device.
+    first_coordinates: Vec<u32>,
 }
 
 impl TrainBatch {
@@ -58,6 +65,7 @@ impl TrainBatch {
         }
         let queries: Vec<u32> =
             examples.iter().flat_map(|e| e.query_indices.iter().copied()).collect();
+        let first_coordinates = faces.iter().step_by(COORDS_PER_FACE).copied().collect();
         Ok(Self {
             points: Tensor::from_vec(
                 flat3(&|e| e.points.iter().flatten().copied().collect()),
@@ -72,6 +80,17 @@ impl TrainBatch {
             query_indices: Tensor::from_vec(queries, (b, k), device)?,
             faces: Tensor::from_vec(faces, (b, n, COORDS_PER_FACE), device)?,
             lengths: examples.iter().map(|e| e.faces.len()).collect(),
+            max_coordinate: examples
+                .iter()
+                .flat_map(|e| e.faces.iter().flatten().copied())
+                .max()
+                .unwrap_or(0),
+            max_query_index: examples
+                .iter()
+                .flat_map(|e| e.query_indices.iter().copied())
+                .max()
+                .unwrap_or(0),
+            first_coordinates,
         })
     }
 
@@ -124,13 +143,12 @@ impl TrainBatch {
         }
         let dev = self.faces.device();
         let (b, n, _) = self.faces.dims3()?;
-        let faces = self.faces.to_vec3::<u32>()?;
         let mut targets0 = vec![0u32; b * (n + 1)];
         let mut weights0 = vec![0f32; b * (n + 1)];
         for (r, &len) in self.lengths.iter().enumerate() {
             for i in 0..=len {
                 targets0[r * (n + 1) + i] =
-                    if i < len { faces[r][i][0] } else { quant_levels as u32 };
+                    if i < len { self.first_coordinates[r * n + i] } else { quant_levels as u32 };
                 weights0[r * (n + 1) + i] = 1.0;
             }
         }

@@ -1,8 +1,11 @@
-//! Checkpoints: `config.json` + `model.safetensors` in one directory. Loading checks every
-//! tensor against the config and names the first one that is missing or has the wrong shape.
+//! Checkpoints: `config.json` + `model.safetensors` (or its shards, see [`read_model_weights`])
+//! in one directory. Loading checks every tensor against the config and names the first one
+//! that is missing or has the wrong shape.
+
+mod shards;
 
 use std::collections::{HashMap, HashSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Mutex;
 
 use candle_core::{DType, Device, Shape, Tensor};
@@ -11,8 +14,12 @@ use candle_nn::{Init, VarBuilder, VarMap};
 
 use super::{ENCODER_SCOPE, FaceConfig, FaceModel, ModelError, Result};
 
+pub use shards::{
+    DEFAULT_MAX_SHARD_BYTES, ModelWeights, WEIGHTS_FILE, WEIGHTS_INDEX_FILE, read_model_weights,
+    weight_files,
+};
+
 pub const CONFIG_FILE: &str = "config.json";
-pub const WEIGHTS_FILE: &str = "model.safetensors";
 
 /// Detached copies of a `VarMap`'s tensors: an inference model built from them runs candle's
 /// fused kernels and records no autograd graph.
@@ -45,15 +52,27 @@ pub(crate) fn save_checkpoint<C: serde::Serialize>(
     write_model_dir(dir, cfg, &detached_weights(varmap))
 }
 
-/// Writes `config.json` and `model.safetensors` into `dir` (created if needed), the weights
-/// readable by whoever may read the config. safetensors 0.8 writes through a temporary file,
-/// always mode 0600, so a model exported by one user (root in a build container, say) would be
-/// unreadable to the user that serves it (safetensors issue #782); the config's mode is what
-/// the umask gives.
+/// Writes `config.json` and one `model.safetensors` into `dir` (created if needed), removing
+/// any shards there: checkpoints and a run's best weights stay on the machine that trains, so
+/// only exports, which travel, are sharded.
 pub(crate) fn write_model_dir<C: serde::Serialize>(
     dir: &Path,
     cfg: &C,
     weights: &HashMap<String, Tensor>,
+) -> Result<()> {
+    write_sharded_model_dir(dir, cfg, weights, u64::MAX)
+}
+
+/// Writes `config.json` and the weights into `dir` (created if needed), in shards when their
+/// data passes `max_shard_bytes` (see [`read_model_weights`]), the weights readable by whoever
+/// may read the config. safetensors 0.8 writes through a temporary file, always mode 0600, so
+/// a model exported by one user (root in a build container, say) would be unreadable to the
+/// user that serves it (safetensors issue #782); the config's mode is what the umask gives.
+pub(crate) fn write_sharded_model_dir<C: serde::Serialize>(
+    dir: &Path,
+    cfg: &C,
+    weights: &HashMap<String, Tensor>,
+    max_shard_bytes: u64,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     let cfg_path = dir.join(CONFIG_FILE);
@@ -62,10 +81,12 @@ pub(crate) fn write_model_dir<C: serde::Serialize>(
         message: e.to_string(),
     })?;
     std::fs::write(&cfg_path, json).map_err(io_err(&cfg_path))?;
-    let path = dir.join(WEIGHTS_FILE);
-    candle_core::safetensors::save(weights, &path)?;
+    let written = shards::write_weights(dir, weights, max_shard_bytes)?;
     let permissions = std::fs::metadata(&cfg_path).map_err(io_err(&cfg_path))?.permissions();
-    std::fs::set_permissions(&path, permissions).map_err(io_err(&path))
+    for path in written {
+        std::fs::set_permissions(&path, permissions.clone()).map_err(io_err(&path))?;
+    }
+    Ok(())
 }
 
 /// Reads and validates `config.json`.
@@ -83,32 +104,17 @@ pub(crate) fn read_config<C: serde::de::DeserializeOwned>(dir: &Path) -> Result<
         .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })
 }
 
-fn load_tensors(dir: &Path, device: &Device) -> Result<(PathBuf, HashMap<String, Tensor>)> {
-    let path = dir.join(WEIGHTS_FILE);
-    if !path.is_file() {
-        return Err(ModelError::Io {
-            path,
-            error: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
-        });
-    }
-    let tensors = candle_core::safetensors::load(&path, device)
-        .map_err(|e| ModelError::BadCheckpoint { path: path.clone(), message: e.to_string() })?;
-    Ok((path, tensors))
-}
-
 /// A fingerprint of the shape encoder's weights in `dir`: an image model generates the latents
 /// of one encoder only, and records this to refuse being paired with another. The weights are
 /// hashed as f16 values, so the f16 and f32 exports of one encoder agree (an encoder frozen
-/// since an f16 export is bit for bit that export).
+/// since an f16 export is bit for bit that export). Names and values are hashed in name order,
+/// so a sharded export has the fingerprint of the single file.
 pub fn encoder_fingerprint(dir: &Path) -> Result<String> {
-    let (_, tensors) = load_tensors(dir, &Device::Cpu)?;
+    let ModelWeights { path, tensors } = read_model_weights(dir, &Device::Cpu)?;
     let prefix = format!("{ENCODER_SCOPE}.");
     let mut names: Vec<&String> = tensors.keys().filter(|n| n.starts_with(&prefix)).collect();
     if names.is_empty() {
-        return Err(ModelError::MissingTensor {
-            path: dir.join(WEIGHTS_FILE),
-            name: format!("{prefix}*"),
-        });
+        return Err(ModelError::MissingTensor { path, name: format!("{prefix}*") });
     }
     names.sort();
     let mut hash = Fnv1a::default();
@@ -243,7 +249,7 @@ pub(crate) fn build_checked<M>(
     device: &Device,
     build: impl FnOnce(VarBuilder) -> Result<M>,
 ) -> Result<M> {
-    let (path, tensors) = load_tensors(dir, device)?;
+    let ModelWeights { path, tensors } = read_model_weights(dir, device)?;
     let names: Vec<String> = tensors.keys().cloned().collect();
     let backend = std::sync::Arc::new(CheckedTensors {
         tensors,
@@ -280,7 +286,7 @@ pub fn load_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<
 
 /// The weights part of [`load_into_varmap`], for any model.
 pub(crate) fn copy_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> Result<()> {
-    let (path, tensors) = load_tensors(dir, device)?;
+    let ModelWeights { path, tensors } = read_model_weights(dir, device)?;
     let data = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
     let mut names: Vec<&String> = data.keys().collect();
     names.sort();
@@ -355,6 +361,47 @@ mod tests {
         };
         assert_eq!(saved(&nudge("decoder."), DType::F32), fingerprint);
         assert_ne!(saved(&nudge("encoder."), DType::F32), fingerprint);
+    }
+
+    #[test]
+    fn a_sharded_model_loads_and_fingerprints_as_the_single_file() {
+        let cfg = FaceConfig::micro();
+        let (varmap, model) = random_model(&cfg);
+        let weights = detached_weights(&varmap);
+        let single = tempfile::tempdir().unwrap();
+        write_model_dir(single.path(), &cfg, &weights).unwrap();
+        let sharded = tempfile::tempdir().unwrap();
+        write_sharded_model_dir(sharded.path(), &cfg, &weights, 64 * 1024).unwrap();
+        assert!(!sharded.path().join(WEIGHTS_FILE).exists());
+        assert!(weight_files(sharded.path()).unwrap().len() > 1);
+
+        let loaded = load(sharded.path(), &Device::Cpu).unwrap();
+        let latents = random_latents(&cfg, 1, 5);
+        assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&loaded, &latents)), 0.0);
+        let (fresh, _) = random_model(&cfg);
+        load_into_varmap(sharded.path(), &fresh, &Device::Cpu).unwrap();
+        let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
+        assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
+        assert_eq!(
+            encoder_fingerprint(sharded.path()).unwrap(),
+            encoder_fingerprint(single.path()).unwrap()
+        );
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn shards_and_index_are_as_readable_as_the_config() {
+        use std::os::unix::fs::PermissionsExt;
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        write_sharded_model_dir(dir.path(), &cfg, &detached_weights(&varmap), 64 * 1024).unwrap();
+        let mode = |path: &Path| std::fs::metadata(path).unwrap().permissions().mode() & 0o777;
+        let config = mode(&dir.path().join(CONFIG_FILE));
+        for path in weight_files(dir.path()).unwrap() {
+            assert_eq!(mode(&path), config, "{}", path.display());
+        }
+        assert_eq!(mode(&dir.path().join(WEIGHTS_INDEX_FILE)), config);
     }
 
     #[cfg(unix)]

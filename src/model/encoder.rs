@@ -138,6 +138,18 @@ impl ShapeEncoder {
         normals: &Tensor,
         query_indices: &Tensor,
     ) -> Result<EncoderOutput> {
+        self.forward_with_max_index(points, normals, query_indices, None)
+    }
+
+    /// [`Self::forward`], given the largest query index when the host knows it: reading it
+    /// from the device would make the host wait for the device in every training pass.
+    pub fn forward_with_max_index(
+        &self,
+        points: &Tensor,
+        normals: &Tensor,
+        query_indices: &Tensor,
+        max_index: Option<u32>,
+    ) -> Result<EncoderOutput> {
         let (b, m, c) = points.dims3()?;
         if c != 3 || normals.dims() != points.dims() {
             return Err(ModelError::bad_input(format!(
@@ -157,7 +169,10 @@ impl ShapeEncoder {
         if k == 0 {
             return Err(ModelError::bad_input("no query indices"));
         }
-        let max = query_indices.max_all()?.to_scalar::<u32>()? as usize;
+        let max = match max_index {
+            Some(max) => max as usize,
+            None => query_indices.max_all()?.to_scalar::<u32>()? as usize,
+        };
         if max >= m {
             return Err(ModelError::bad_input(format!(
                 "query index {max} is not below the point count {m}"

@@ -44,6 +44,25 @@ pub enum ModelError {
     #[error("checkpoint {path}: unexpected tensor(s) not used by the config: {names:?}")]
     UnexpectedTensors { path: PathBuf, names: Vec<String> },
 
+    /// A model folder with both weight layouts: which one is meant is anyone's guess.
+    #[error(
+        "checkpoint {dir}: holds both model.safetensors and model.safetensors.index.json; \
+         remove one of the two layouts"
+    )]
+    MixedWeightLayouts { dir: PathBuf },
+
+    #[error("checkpoint {path}: bad shard index: {message}")]
+    BadShardIndex { path: PathBuf, message: String },
+
+    #[error("checkpoint {path}: shard {shard} named by the index is missing")]
+    MissingShard { path: PathBuf, shard: String },
+
+    #[error("checkpoint {path}: tensor {name:?} is in both {first} and {second}")]
+    DuplicateTensor { path: PathBuf, name: String, first: String, second: String },
+
+    #[error("checkpoint {path}: the index puts tensor {name:?} in {shard}, which lacks it")]
+    TensorNotInShard { path: PathBuf, name: String, shard: String },
+
     #[error(
         "the image model in {image_model} generates the latents of another encoder than the face \
          model's in {face_model} (encoder fingerprints {expected} and {found}): train an image \

@@ -223,20 +223,32 @@ impl FaceModel {
     /// faces (B, N, 9) u32. Position i holds the state from which face i is decoded; position N
     /// the one that should say end of mesh.
     pub fn hidden_states(&self, latents: &Tensor, faces: &Tensor) -> Result<Tensor> {
+        let max = if faces.elem_count() > 0 {
+            faces.max_all()?.to_dtype(DType::U32)?.to_scalar::<u32>()?
+        } else {
+            0
+        };
+        self.check_coordinates(max as usize)?;
+        self.hidden_states_of_checked(latents, faces)
+    }
+
+    fn check_coordinates(&self, max: usize) -> Result<()> {
+        if max >= self.cfg.quant_levels {
+            return Err(ModelError::bad_input(format!(
+                "face coordinates must be below Q = {}",
+                self.cfg.quant_levels
+            )));
+        }
+        Ok(())
+    }
+
+    /// [`Self::hidden_states`] for faces whose coordinates are known to be below Q.
+    fn hidden_states_of_checked(&self, latents: &Tensor, faces: &Tensor) -> Result<Tensor> {
         let (b, _n, c) = faces.dims3()?;
         if c != COORDS_PER_FACE {
             return Err(ModelError::bad_input(format!(
                 "faces {:?} must be (B, N, 9)",
                 faces.dims()
-            )));
-        }
-        if faces.elem_count() > 0
-            && faces.max_all()?.to_dtype(DType::U32)?.to_scalar::<u32>()? as usize
-                >= self.cfg.quant_levels
-        {
-            return Err(ModelError::bad_input(format!(
-                "face coordinates must be below Q = {}",
-                self.cfg.quant_levels
             )));
         }
         let start = self.start.reshape((1, 1, ()))?.broadcast_as((b, 1, self.cfg.decoder.width))?;
@@ -284,12 +296,18 @@ impl FaceModel {
         batch: &super::TrainBatch,
         encoder: EncoderTraining,
     ) -> Result<(Vec<Tensor>, EncoderOutput)> {
-        let enc = self.encode_train(&batch.points, &batch.normals, &batch.query_indices)?;
+        let enc = self.encoder.forward_with_max_index(
+            &batch.points,
+            &batch.normals,
+            &batch.query_indices,
+            Some(batch.max_query_index),
+        )?;
         let latents = match encoder {
             EncoderTraining::Trained => enc.sample()?,
             EncoderTraining::Frozen => enc.sample()?.detach(),
         };
-        let hidden = self.hidden_states(&latents, &batch.faces)?;
+        self.check_coordinates(usize::from(batch.max_coordinate))?;
+        let hidden = self.hidden_states_of_checked(&latents, &batch.faces)?;
         Ok((self.teacher_forced_logits(&hidden, &batch.faces)?, enc))
     }
 }

@@ -227,41 +227,58 @@ impl BatchSource {
     }
 }
 
-/// Makes batches `start, start + 1, ...` ahead of the trainer on its own thread. Dropping it
-/// stops the thread at its next send.
+/// Makes batches `start, start + 1, ...` ahead of the trainer on threads of their own: worker
+/// `w` of `n` makes every `n`th batch from `start + w`, and they are read back in index order,
+/// so the stream is the same whatever the number of workers. Dropping it stops the threads at
+/// their next send.
 pub struct Prefetcher {
-    rx: Receiver<Result<Batch, TrainError>>,
-    handle: Option<JoinHandle<()>>,
+    workers: Vec<(BatchReceiver, JoinHandle<()>)>,
+    next: usize,
 }
 
+type BatchReceiver = Receiver<Result<Batch, TrainError>>;
+
 impl Prefetcher {
-    pub fn spawn(source: BatchSource, start: u64, depth: usize) -> Self {
-        let (tx, rx): (SyncSender<_>, _) = sync_channel(depth.max(1));
-        let handle = std::thread::Builder::new()
-            .name("batch-prefetch".into())
-            .spawn(move || {
-                for index in start.. {
-                    if tx.send(source.batch(index)).is_err() {
-                        return;
-                    }
-                }
+    /// `depth` batches are made ahead per worker.
+    pub fn spawn(source: BatchSource, start: u64, depth: usize, workers: usize) -> Self {
+        let source = Arc::new(source);
+        let count = workers.max(1) as u64;
+        let workers = (0..count)
+            .filter_map(|w| {
+                let (tx, rx): (SyncSender<_>, _) = sync_channel(depth.max(1));
+                let source = source.clone();
+                let handle = std::thread::Builder::new()
+                    .name(format!("batch-prefetch-{w}"))
+                    .spawn(move || {
+                        for index in (start + w..).step_by(count as usize) {
+                            if tx.send(source.batch(index)).is_err() {
+                                return;
+                            }
+                        }
+                    })
+                    .ok()?;
+                Some((rx, handle))
             })
-            .ok();
-        Self { rx, handle }
+            .collect::<Vec<_>>();
+        // A worker that could not start would leave a gap in the order: use none then.
+        let workers = if workers.len() as u64 == count { workers } else { Vec::new() };
+        Self { workers, next: 0 }
     }
 
-    /// The next batch, in index order; `None` if the thread could not start or stopped.
-    pub fn next_batch(&self) -> Option<Result<Batch, TrainError>> {
-        self.rx.recv().ok()
+    /// The next batch, in index order; `None` if the threads could not start or stopped.
+    pub fn next_batch(&mut self) -> Option<Result<Batch, TrainError>> {
+        let (rx, _) = self.workers.get(self.next % self.workers.len().max(1))?;
+        self.next += 1;
+        rx.recv().ok()
     }
 }
 
 impl Drop for Prefetcher {
     fn drop(&mut self) {
-        // Closing the receiver makes the thread's next send fail, which ends it.
-        let (_, dead) = sync_channel(1);
-        drop(std::mem::replace(&mut self.rx, dead));
-        if let Some(h) = self.handle.take() {
+        // Closing every receiver first makes each thread's next send fail, which ends it.
+        let (receivers, handles): (Vec<_>, Vec<_>) = self.workers.drain(..).unzip();
+        drop(receivers);
+        for h in handles {
             let _ = h.join();
         }
     }
@@ -376,10 +393,27 @@ mod tests {
 
     #[test]
     fn prefetcher_delivers_in_order_and_stops_when_dropped() {
-        let prefetch = Prefetcher::spawn(BatchSource::new(None, config(200)), 7, 2);
+        let mut prefetch = Prefetcher::spawn(BatchSource::new(None, config(200)), 7, 2, 1);
         for expected in 7..10 {
             assert_eq!(prefetch.next_batch().unwrap().unwrap().index, expected);
         }
         drop(prefetch);
+    }
+
+    #[test]
+    fn several_workers_make_the_same_stream_as_one() {
+        let names = |workers| {
+            let mut prefetch =
+                Prefetcher::spawn(BatchSource::new(None, config(200)), 3, 1, workers);
+            (0..7)
+                .map(|_| {
+                    let batch = prefetch.next_batch().unwrap().unwrap();
+                    (batch.index, batch.samples.iter().map(|s| s.faces.clone()).collect::<Vec<_>>())
+                })
+                .collect::<Vec<_>>()
+        };
+        let one = names(1);
+        assert_eq!(one.iter().map(|(i, _)| *i).collect::<Vec<_>>(), (3..10).collect::<Vec<_>>());
+        assert_eq!(names(3), one);
     }
 }

@@ -143,8 +143,8 @@ pub fn read_weights(
     shapes: &HashMap<String, Vec<usize>>,
     device: &Device,
 ) -> Result<HashMap<String, Tensor>, TrainError> {
-    let path = dir.join(model_checkpoint::WEIGHTS_FILE);
-    let mut tensors: HashMap<String, Tensor> = candle_core::safetensors::load(&path, device)?;
+    let model_checkpoint::ModelWeights { path, mut tensors } =
+        model_checkpoint::read_model_weights(dir, device)?;
     let mut weights = HashMap::with_capacity(shapes.len());
     for (name, dims) in shapes {
         let t = tensors.remove(name).ok_or_else(|| TrainError::Weights {
@@ -164,8 +164,15 @@ pub fn read_weights(
 
 /// Writes what inference needs (`config.json` + `model.safetensors`, no optimizer state) from
 /// a checkpoint or model directory of a face autoencoder or a diffusion model, with the
-/// weights stored as `dtype` (F16 halves the size).
-pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
+/// weights stored as `dtype` (F16 halves the size). Weights with more than `max_shard_bytes`
+/// of data are written as shards plus `model.safetensors.index.json`, so that every file fits
+/// a transfer limit; the folder keeps no weight files of an earlier export.
+pub fn export(
+    from: &Path,
+    to: &Path,
+    dtype: DType,
+    max_shard_bytes: u64,
+) -> Result<(), TrainError> {
     let cfg = match model_checkpoint::load_config(from) {
         Ok(face) => AnyConfig::Face(face),
         Err(face_err) => match crate::diffusion::checkpoint::load_config(from) {
@@ -173,14 +180,41 @@ pub fn export(from: &Path, to: &Path, dtype: DType) -> Result<(), TrainError> {
             Err(_) => return Err(face_err.into()),
         },
     };
-    let src = from.join(model_checkpoint::WEIGHTS_FILE);
-    let tensors = candle_core::safetensors::load(&src, &Device::Cpu)?;
+    let tensors = model_checkpoint::read_model_weights(from, &Device::Cpu)?.tensors;
     let converted = tensors
         .into_iter()
         .map(|(name, t)| Ok((name, t.to_dtype(dtype)?)))
         .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
-    model_checkpoint::write_model_dir(to, &cfg, &converted)?;
+    model_checkpoint::write_sharded_model_dir(to, &cfg, &converted, max_shard_bytes)?;
     Ok(())
+}
+
+/// Parses a shard size for `--max-shard-size`: a positive number of bytes, optionally with a
+/// unit (B, KB, MB, GB in powers of 1000; KiB, MiB, GiB in powers of 1024), e.g. `15MiB`.
+pub fn parse_shard_size(text: &str) -> Result<u64, String> {
+    let text = text.trim();
+    let split = text.find(|c: char| !c.is_ascii_digit()).unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let number: u64 = number.parse().map_err(|_| format!("{text:?} is not a byte count"))?;
+    let scale: u64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1,
+        "kb" => 1000,
+        "mb" => 1000 * 1000,
+        "gb" => 1000 * 1000 * 1000,
+        "kib" => 1 << 10,
+        "mib" => 1 << 20,
+        "gib" => 1 << 30,
+        other => {
+            return Err(format!(
+                "unknown unit {other:?} in {text:?} (B, KB, MB, GB, KiB, MiB, GiB)"
+            ));
+        }
+    };
+    match number.checked_mul(scale) {
+        Some(0) => Err("the shard size must be positive".into()),
+        Some(bytes) => Ok(bytes),
+        None => Err(format!("{text:?} is too large")),
+    }
 }
 
 /// The configuration of either kind of model, written as the model's own.
@@ -193,7 +227,86 @@ enum AnyConfig {
 
 #[cfg(test)]
 mod tests {
-    use super::TrainState;
+    use super::*;
+    use crate::model::FaceConfig;
+    use crate::model::checkpoint::{WEIGHTS_FILE, WEIGHTS_INDEX_FILE, weight_files};
+    use crate::model::testing::random_model;
+
+    /// A run's model folder (f32) and the weights in it.
+    fn model_dir() -> tempfile::TempDir {
+        let cfg = FaceConfig::micro();
+        let (varmap, _) = random_model(&cfg);
+        let dir = tempfile::tempdir().unwrap();
+        model_checkpoint::save(dir.path(), &cfg, &varmap).unwrap();
+        dir
+    }
+
+    fn f32_weights(dir: &Path) -> HashMap<String, Vec<f32>> {
+        let tensors = model_checkpoint::read_model_weights(dir, &Device::Cpu).unwrap().tensors;
+        tensors
+            .into_iter()
+            .map(|(name, t)| {
+                let values = t.to_dtype(DType::F32).unwrap().flatten_all().unwrap();
+                (name, values.to_vec1().unwrap())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_sharded_export_holds_the_weights_of_the_single_file() {
+        let run = model_dir();
+        let out = tempfile::tempdir().unwrap();
+        let single = out.path().join("single");
+        export(run.path(), &single, DType::F16, model_checkpoint::DEFAULT_MAX_SHARD_BYTES).unwrap();
+        assert!(single.join(WEIGHTS_FILE).is_file());
+        assert!(!single.join(WEIGHTS_INDEX_FILE).exists());
+
+        let sharded = out.path().join("sharded");
+        export(run.path(), &sharded, DType::F16, 32 * 1024).unwrap();
+        assert!(!sharded.join(WEIGHTS_FILE).exists());
+        assert!(weight_files(&sharded).unwrap().len() > 1);
+        assert_eq!(f32_weights(&sharded), f32_weights(&single));
+        crate::model::checkpoint::load(&sharded, &Device::Cpu).unwrap();
+
+        // Exporting from a sharded folder, and over one, gives the single file again.
+        export(&sharded, &sharded, DType::F16, model_checkpoint::DEFAULT_MAX_SHARD_BYTES).unwrap();
+        let bytes = |dir: &Path| std::fs::read(dir.join(WEIGHTS_FILE)).unwrap();
+        assert_eq!(bytes(&sharded), bytes(&single));
+        let mut left: Vec<_> = std::fs::read_dir(&sharded)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        left.sort();
+        assert_eq!(left, vec!["config.json", WEIGHTS_FILE]);
+    }
+
+    #[test]
+    fn read_weights_takes_shards() {
+        let run = model_dir();
+        let out = tempfile::tempdir().unwrap();
+        export(run.path(), out.path(), DType::F32, 32 * 1024).unwrap();
+        let (varmap, _) = random_model(&FaceConfig::micro());
+        load_weights(out.path(), &varmap, &Device::Cpu).unwrap();
+        let expected = f32_weights(run.path());
+        for (name, var) in varmap.data().lock().unwrap().iter() {
+            let values: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(values, expected[name], "{name}");
+        }
+    }
+
+    #[test]
+    fn shard_sizes_take_units() {
+        assert_eq!(parse_shard_size("15MiB"), Ok(15 << 20));
+        assert_eq!(parse_shard_size(" 16 MB "), Ok(16_000_000));
+        assert_eq!(parse_shard_size("1048576"), Ok(1 << 20));
+        assert_eq!(parse_shard_size("2gib"), Ok(2 << 30));
+        assert_eq!(parse_shard_size("512KB"), Ok(512_000));
+        assert!(parse_shard_size("0MiB").is_err());
+        assert!(parse_shard_size("MiB").is_err());
+        assert!(parse_shard_size("1.5MiB").is_err());
+        assert!(parse_shard_size("3 parsecs").is_err());
+        assert!(parse_shard_size("99999999999999GiB").is_err());
+    }
 
     #[test]
     fn only_a_lower_chamfer_distance_is_the_new_best() {

@@ -24,6 +24,9 @@ pub enum LogRecord {
         positions: usize,
         meshes: usize,
         faces_per_s: f64,
+        /// Where the step's wall time went (runs from before the field: zeros).
+        #[serde(default)]
+        timing: StepTiming,
         elapsed_s: f64,
     },
     Eval {
@@ -52,6 +55,22 @@ pub enum LogRecord {
         report: DitEvalReport,
         elapsed_s: f64,
     },
+}
+
+/// Where one optimizer step's wall time went, each phase waited out on the device before the
+/// next begins: what holds training back on a GPU.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq)]
+pub struct StepTiming {
+    /// Forward and backward passes: one per group of similar lengths.
+    pub groups: usize,
+    /// Waiting for batches: above zero, data preparation is the bottleneck.
+    pub data_wait_s: f64,
+    /// The groups' copies to the device, forward and backward passes.
+    pub compute_s: f64,
+    /// Gradient clipping and the optimizer's update.
+    pub update_s: f64,
+    /// The weight average's update (zero without one).
+    pub average_s: f64,
 }
 
 /// Appends records to the log, one line each, flushed so a crash loses nothing written.

@@ -6,6 +6,7 @@ pub mod average;
 pub mod batch;
 pub mod checkpoint;
 pub mod dataset;
+pub mod device_check;
 pub mod dit;
 mod error;
 pub mod evaluate;

@@ -233,13 +233,18 @@ pub fn newton_schulz(g: &Tensor, steps: usize) -> Result<Tensor> {
 /// Scales all gradients so their global L2 norm is at most `max_norm`; returns the norm
 /// before clipping. Parameters without a gradient are skipped.
 pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Result<f64> {
-    let mut total = 0.0f64;
-    for var in vars {
-        if let Some(g) = grads.get(var.as_tensor()) {
-            total += g.sqr()?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-        }
-    }
-    let norm = total.sqrt();
+    // Each gradient's sum of squares stays on the device; one copy brings them all back.
+    let squares = vars
+        .iter()
+        .filter_map(|var| grads.get(var.as_tensor()))
+        .map(|g| g.sqr()?.sum_all())
+        .collect::<Result<Vec<_>>>()?;
+    let norm = if squares.is_empty() {
+        0.0
+    } else {
+        let squares = Tensor::stack(&squares, 0)?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+        squares.iter().sum::<f64>().sqrt()
+    };
     if norm.is_finite() && norm > max_norm && max_norm > 0.0 {
         let factor = max_norm / norm;
         for var in vars {

@@ -1,10 +1,10 @@
 //! The loop every trainer shares: optimizer steps until the end of the schedule, a stop
-//! request (Ctrl-C) or `--stop-at`; a progress bar; evaluations every `eval_every` steps and at
-//! the end; checkpoints every `checkpoint_every` steps and on the way out. What a step and an
-//! evaluation are is the trainer's ([`Steps`]).
+//! request (Ctrl-C), `--stop-at` or the session's time budget; a progress bar; evaluations
+//! every `eval_every` steps and at the end; checkpoints every `checkpoint_every` steps and on
+//! the way out. What a step and an evaluation are is the trainer's ([`Steps`]).
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use candle_core::Var;
 use candle_core::backprop::GradStore;
@@ -86,46 +86,87 @@ pub fn update(
     Ok((lr, grad_norm))
 }
 
+/// Where a session ends short of the schedule.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SessionLimits {
+    /// Stop at this step (checkpointed, to be resumed; the schedule still spans its length).
+    pub stop_at: Option<u64>,
+    /// Wall-clock time for the whole session, its final evaluation and checkpoint included:
+    /// steps stop early enough for the evaluation to fit, judged by how long the last one
+    /// took (before any, a sixth of the budget is kept for it).
+    pub time_budget: Option<Duration>,
+}
+
+impl SessionLimits {
+    /// Whether another step still leaves time for the final evaluation.
+    fn time_left(&self, started: Instant, last_eval: Option<Duration>) -> bool {
+        self.time_budget.is_none_or(|budget| {
+            let reserve = last_eval.unwrap_or(budget / 6);
+            started.elapsed() + reserve < budget
+        })
+    }
+}
+
 /// How a session ended.
 #[derive(Debug, Clone)]
 pub struct RunSummary<R> {
     pub state: TrainState,
     /// Stopped by a stop request rather than the schedule or `stop_at`.
     pub interrupted: bool,
+    /// Stopped because the time budget was spent.
+    pub out_of_time: bool,
     /// The last evaluation, with its step.
     pub last_eval: Option<(u64, R)>,
 }
 
-/// Trains until the configured step count, `stop_at` (checkpointed, to be resumed; the
-/// schedule still spans the configured count), or a stop request.
+/// Trains until the configured step count, a stop request or one of `limits` (checkpointed,
+/// to be resumed; the schedule still spans the configured count). A session that runs out of
+/// time evaluates its last step before it ends.
 pub fn run<T: Steps>(
     trainer: &mut T,
     stop: &AtomicBool,
-    stop_at: Option<u64>,
+    limits: SessionLimits,
     progress: bool,
 ) -> Result<RunSummary<T::Report>, TrainError> {
+    let started = Instant::now();
     let (steps, eval_every, checkpoint_every) = {
         let plan = trainer.plan();
         (plan.steps, plan.eval_every.max(1), plan.checkpoint_every.max(1))
     };
-    let end = stop_at.map_or(steps, |s| s.min(steps));
+    let end = limits.stop_at.map_or(steps, |s| s.min(steps));
     let bar = progress_bar(trainer.state().step, steps, progress);
     let mut session = trainer.begin()?;
-    let (mut interrupted, mut last_eval) = (false, None);
+    let (mut interrupted, mut out_of_time, mut last_eval) = (false, false, None);
+    // Evaluates, prints and keeps the report; returns how long it took.
+    let evaluate = |trainer: &mut T, last_eval: &mut Option<(u64, T::Report)>| {
+        let t0 = Instant::now();
+        if let Some(report) = bar.suspend(|| trainer.evaluate())? {
+            let step = trainer.state().step;
+            bar.println(T::report_line(step, &report));
+            *last_eval = Some((step, report));
+        }
+        Ok::<_, TrainError>(t0.elapsed())
+    };
+    // How long the last evaluation took: what the final one is expected to take.
+    let mut reserve = None;
     while trainer.state().step < end {
         if stop.load(Ordering::SeqCst) {
             interrupted = true;
+            break;
+        }
+        if !limits.time_left(started, reserve) {
+            out_of_time = true;
+            if last_eval.as_ref().is_none_or(|(s, _)| *s != trainer.state().step) {
+                evaluate(trainer, &mut last_eval)?;
+            }
             break;
         }
         let message = trainer.train_step(&mut session)?;
         let step = trainer.state().step;
         bar.set_position(step);
         bar.set_message(message);
-        if (step.is_multiple_of(eval_every) || step == end)
-            && let Some(report) = bar.suspend(|| trainer.evaluate())?
-        {
-            bar.println(T::report_line(step, &report));
-            last_eval = Some((step, report));
+        if step.is_multiple_of(eval_every) || step == end {
+            reserve = Some(evaluate(trainer, &mut last_eval)?);
         }
         if step.is_multiple_of(checkpoint_every) {
             trainer.save_checkpoint()?;
@@ -133,7 +174,7 @@ pub fn run<T: Steps>(
     }
     trainer.save_checkpoint()?;
     bar.finish_and_clear();
-    Ok(RunSummary { state: trainer.state().clone(), interrupted, last_eval })
+    Ok(RunSummary { state: trainer.state().clone(), interrupted, out_of_time, last_eval })
 }
 
 fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {

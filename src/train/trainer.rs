@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use candle_core::backprop::GradStore;
-use candle_core::{DType, Device, Var};
+use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
@@ -24,7 +24,7 @@ use super::batch::{BatchConfig, BatchSource, Prefetcher};
 use super::checkpoint::{self, RunDir, TrainState};
 use super::dataset::{FolderData, load_folder};
 use super::evaluate::{EvalReport, EvalSet, evaluate};
-use super::log::{LogRecord, LogWriter};
+use super::log::{LogRecord, LogWriter, StepTiming};
 use super::optim::{OptimConfig, Optimizer, default_rule};
 use super::run_loop;
 
@@ -266,6 +266,16 @@ fn add_grads(acc: &mut GradStore, more: &GradStore, vars: &[Var]) -> Result<(), 
     Ok(())
 }
 
+/// Threads that make batches: on the CPU the model needs the cores itself, so one; beside a
+/// GPU every core but the one that drives it, since sampling, augmentation and tokenization
+/// of tens of thousands of face positions per step would otherwise leave the GPU waiting.
+fn data_workers(device: &Device) -> usize {
+    if device.is_cpu() {
+        return 1;
+    }
+    std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1).max(1))
+}
+
 /// What one `ae` session keeps between steps.
 pub struct AeSession {
     prefetch: Prefetcher,
@@ -288,7 +298,12 @@ impl run_loop::Steps for Trainer {
         let source = BatchSource::new(self.train_data.clone(), self.cfg.batch.clone());
         let accumulate = self.cfg.accumulate.max(1) as u64;
         Ok(AeSession {
-            prefetch: Prefetcher::spawn(source, self.state.step * accumulate, 4),
+            prefetch: Prefetcher::spawn(
+                source,
+                self.state.step * accumulate,
+                4,
+                data_workers(&self.device),
+            ),
             clock: run_loop::SessionClock::new(self.varmap.all_vars(), &self.state),
         })
     }
@@ -297,11 +312,19 @@ impl run_loop::Steps for Trainer {
         let accumulate = self.cfg.accumulate.max(1) as u64;
         let t0 = Instant::now();
         let mut grads: Option<GradStore> = None;
-        let (mut loss, mut coord_loss, mut positions, mut meshes) = (0.0, 0.0, 0, 0);
+        // The step's losses stay on the device until the step ends: one copy to the host per
+        // step, not one per group, so the GPU is never made to wait mid-step.
+        let mut losses: Option<Tensor> = None;
+        let (mut positions, mut meshes) = (0, 0);
+        let mut timing = StepTiming::default();
         for _ in 0..accumulate {
+            let waiting = Instant::now();
             let batch = session.prefetch.next_batch().ok_or(TrainError::DataStopped)??;
+            timing.data_wait_s += waiting.elapsed().as_secs_f64();
             let batch_positions = batch.positions();
-            for group in batch.length_groups(self.cfg.batch.max_padding) {
+            let groups = batch.length_groups(self.cfg.batch.max_padding);
+            timing.groups += groups.len();
+            for group in groups {
                 let examples: Vec<_> = group.iter().map(|s| super::evaluate::example(s)).collect();
                 let tensors = TrainBatch::new(&examples, &self.device)?;
                 let out = self.model.loss(&tensors, self.cfg.encoder)?;
@@ -309,8 +332,12 @@ impl run_loop::Steps for Trainer {
                 // the sum is the mean over the whole step's positions.
                 let group_positions: usize = group.iter().map(|s| s.faces.len() + 1).sum();
                 let weight = group_positions as f64 / batch_positions as f64 / accumulate as f64;
-                loss += f64::from(out.total.to_scalar::<f32>()?) * weight;
-                coord_loss += f64::from(out.coords.to_scalar::<f32>()?) * weight;
+                let pair =
+                    (Tensor::stack(&[out.total.detach(), out.coords.detach()], 0)? * weight)?;
+                losses = Some(match losses {
+                    None => pair,
+                    Some(sum) => (sum + pair)?,
+                });
                 let step_grads = (out.total * weight)?.backward()?;
                 grads = Some(match grads {
                     None => step_grads,
@@ -323,6 +350,11 @@ impl run_loop::Steps for Trainer {
             positions += batch_positions;
             meshes += batch.samples.len();
         }
+        // Copying the losses back waits for every pass the step queued on the device.
+        let losses = losses.ok_or(TrainError::DataStopped)?.to_vec1::<f32>()?;
+        let (loss, coord_loss) = (f64::from(losses[0]), f64::from(losses[1]));
+        timing.compute_s = t0.elapsed().as_secs_f64() - timing.data_wait_s;
+        let phase = Instant::now();
         let grads = grads.ok_or(TrainError::DataStopped)?;
         let (lr, grad_norm) = run_loop::update(
             loss,
@@ -332,8 +364,13 @@ impl run_loop::Steps for Trainer {
             &self.cfg.plan,
             &session.clock,
         )?;
+        self.device.synchronize()?;
+        timing.update_s = phase.elapsed().as_secs_f64();
         if let Some(average) = &mut self.average {
+            let phase = Instant::now();
             average.update(&self.varmap, self.state.step)?;
+            self.device.synchronize()?;
+            timing.average_s = phase.elapsed().as_secs_f64();
         }
         let faces_per_s = positions as f64 / t0.elapsed().as_secs_f64();
         self.log.write(&LogRecord::Step {
@@ -345,6 +382,7 @@ impl run_loop::Steps for Trainer {
             positions,
             meshes,
             faces_per_s,
+            timing,
             elapsed_s: self.state.elapsed_s,
         })?;
         Ok(format!("loss {coord_loss:.2}  {faces_per_s:.0} faces/s"))

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::diffusion::{LatentStats, latent_stats};
 use crate::mesh::Mesh;
-use crate::model::checkpoint::{Fnv1a, WEIGHTS_FILE};
+use crate::model::checkpoint::{Fnv1a, weight_files};
 use crate::model::{FaceConfig, FaceModel, TrainBatch};
 use crate::tokenize::Quantizer;
 
@@ -40,19 +40,26 @@ const ENCODE_BATCH: usize = 32;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AutoencoderId {
     pub config: FaceConfig,
+    /// Bytes of the weight files.
     pub weights_bytes: u64,
-    /// FNV-1a (64 bit) of `model.safetensors`, in hex.
+    /// FNV-1a (64 bit) of `model.safetensors` in hex; of a sharded model, of its shards one
+    /// after the other in index order (the index itself is not hashed: the shards hold every
+    /// name and value). Single-file ids are what they were before shards; the shards of the
+    /// same weights hash differently, so a run started on one layout refuses the other.
     pub weights_fnv1a: String,
 }
 
 impl AutoencoderId {
     pub fn of(dir: &Path) -> Result<Self, TrainError> {
         let config = crate::model::checkpoint::load_config(dir)?;
-        let path = dir.join(WEIGHTS_FILE);
-        let bytes = std::fs::read(&path).map_err(TrainError::io(&path))?;
         let mut hash = Fnv1a::default();
-        hash.write(&bytes);
-        Ok(Self { config, weights_bytes: bytes.len() as u64, weights_fnv1a: hash.hex() })
+        let mut weights_bytes = 0;
+        for path in weight_files(dir)? {
+            let bytes = std::fs::read(&path).map_err(TrainError::io(&path))?;
+            hash.write(&bytes);
+            weights_bytes += bytes.len() as u64;
+        }
+        Ok(Self { config, weights_bytes, weights_fnv1a: hash.hex() })
     }
 }
 
@@ -344,6 +351,7 @@ fn progress_bar(total: u64, visible: bool) -> ProgressBar {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::checkpoint::WEIGHTS_FILE;
 
     /// The repository's default autoencoder, with the spec of a small procedural cache.
     fn spec_and_model(seed: u64) -> (CacheSpec, FaceModel) {
@@ -405,6 +413,25 @@ mod tests {
         assert!((stats.mean[0] - mean).abs() < 1e-4);
         assert!((stats.std[0] - var.sqrt().max(1e-3)).abs() < 1e-4);
         assert!(stats.std.iter().all(|s| *s >= 1e-3));
+    }
+
+    #[test]
+    fn autoencoder_id_of_shards_hashes_them_in_order() {
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default");
+        let dir = tempfile::tempdir().unwrap();
+        crate::train::checkpoint::export(&src, dir.path(), candle_core::DType::F16, 1 << 20)
+            .unwrap();
+        let shards = weight_files(dir.path()).unwrap();
+        assert!(shards.len() > 1);
+        let mut hash = Fnv1a::default();
+        let mut bytes = 0;
+        for shard in &shards {
+            let data = std::fs::read(shard).unwrap();
+            hash.write(&data);
+            bytes += data.len() as u64;
+        }
+        let id = AutoencoderId::of(dir.path()).unwrap();
+        assert_eq!((id.weights_bytes, id.weights_fnv1a), (bytes, hash.hex()));
     }
 
     #[test]
