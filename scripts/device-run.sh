@@ -19,6 +19,8 @@
 #                      the CPU at a 1e-2 tolerance first; 0: plain f32
 #   REFERENCE_SECONDS  timed seconds per PyTorch setting, f32 and bf16 (default 20; 0: none)
 #   CHECK_MESHES       held-aside shapes the device check runs (default 8)
+#   BENCH_POSITIONS    batch sizes `meshstream-train bench` times phase by phase before
+#                      training (default 16384,65536; empty: none)
 #   TRAIN_ARGS         more `meshstream-train ae` options
 set -uo pipefail
 bundle=$(realpath "${1:?usage: device-run.sh BUNDLE OUT}")
@@ -31,6 +33,7 @@ steps=${STEPS:-2000}
 reference_seconds=${REFERENCE_SECONDS:-20}
 tf32=${TF32:-1}
 check_meshes=${CHECK_MESHES:-8}
+bench_positions=${BENCH_POSITIONS-16384,65536}
 started=$(date +%s)
 work=$(mktemp -d)
 logs=$work/logs
@@ -84,6 +87,14 @@ if [[ $tf32 == 1 ]]; then
     "$train" check-device --model "$check_model" --device "$device" --meshes "$check_meshes" --json --tf32 --tolerance 1e-2 \
         >"$logs/check-tf32.json" 2>>"$logs/check.err" || finish "the TF32 check failed" 1
     say "check with tf32: $(cat "$logs/check-tf32.json")"
+fi
+
+# Where a step's time goes, phase by phase, before training (none with BENCH_POSITIONS=).
+if [[ -n $bench_positions ]]; then
+    bench_args=(--model "$check_model" --device "$device" --positions "$bench_positions" --steps 2)
+    [[ $tf32 == 1 ]] && bench_args+=(--tf32)
+    "$train" bench "${bench_args[@]}" >"$logs/bench.txt" 2>&1
+    tee -a "$summary" <"$logs/bench.txt"
 fi
 
 # PyTorch on the same chip, same architecture and batch, for the ratio.

@@ -84,6 +84,7 @@ fn the_packed_run_trains_on_the_cpu_and_its_weights_load() {
         .env("BATCH_FACES", "300")
         .env("STEPS", "50")
         .env("CHECK_MESHES", "2")
+        .env("BENCH_POSITIONS", "200")
         .env("TRAIN_ARGS", "--eval-meshes 1 --eval-procedural 1 --eval-samples 2000")
         .current_dir(repo())
         .output()
@@ -91,6 +92,7 @@ fn the_packed_run_trains_on_the_cpu_and_its_weights_load() {
     let stdout = assert_ran(&run, "device-run.sh");
     assert!(stdout.contains("check: {"), "no device check in:\n{stdout}");
     assert!(stdout.contains("faces/s median"), "no throughput in:\n{stdout}");
+    assert!(stdout.contains("backward ms"), "no phase timing in:\n{stdout}");
 
     // What comes back from a GPU machine: at most 8 files.
     let files: Vec<_> = walk(&out);

@@ -14,7 +14,9 @@ use meshstream::model::{CoordinateNll, EncoderTraining, FaceConfig, parse_device
 use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
+use meshstream::train::bench::{StepPhases, bench_train_step};
 use meshstream::train::checkpoint::{RunDir, average_dir, export, parse_shard_size};
+use meshstream::train::dataset::load_folder;
 use meshstream::train::device_check::check_device;
 use meshstream::train::dit::DitTrainConfig;
 use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
@@ -89,6 +91,34 @@ enum Command {
     /// The teacher-forced loss of a model on meshes, mesh by mesh (nats per face, end of mesh
     /// included, as in training): which shapes it has learned, whatever decoding does.
     Loss(LossArgs),
+    /// Where a training step's time goes: the step taken apart into phases (upload, encoder,
+    /// decoder, head, loss, backward, update), each waited out on the device, at each batch
+    /// size; a table, or JSON lines.
+    Bench {
+        /// A model folder (or a run folder: its best weights): the architecture timed.
+        #[arg(long, default_value = "models/default")]
+        model: PathBuf,
+        /// cpu or cuda:N (with --features cuda).
+        #[arg(long, default_value = "cpu")]
+        device: String,
+        /// Face positions per step, one row each.
+        #[arg(long, value_delimiter = ',', default_values_t = [1200, 4800])]
+        positions: Vec<usize>,
+        /// Timed steps per row (after one untimed).
+        #[arg(long, default_value_t = 3)]
+        steps: usize,
+        #[arg(long, default_value_t = 0.25)]
+        max_padding: f64,
+        /// A mesh folder (a manifest's train split) drawn half the time beside procedural
+        /// shapes; without it, procedural shapes only.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// On CUDA, f32 matrix products on TF32 tensor cores.
+        #[arg(long)]
+        tf32: bool,
+        #[arg(long)]
+        json: bool,
+    },
     /// Check that a device computes what the CPU does: a model's loss and gradient norm on
     /// the same batch of held-aside procedural shapes, on both. Fails (exit status 1) beyond
     /// the tolerance: run it before a GPU build trains anything.
@@ -423,6 +453,18 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Loss(args) => loss_command(&args),
+        Command::Bench { model, device, positions, steps, max_padding, data, tf32, json } => {
+            candle_core::cuda::set_gemm_reduced_precision_f32(tf32);
+            bench_command(
+                &model_folder(&model),
+                &device,
+                &positions,
+                steps,
+                max_padding,
+                data,
+                json,
+            )
+        }
         Command::CheckDevice { model, device, meshes, tolerance, tf32, json } => {
             candle_core::cuda::set_gemm_reduced_precision_f32(tf32);
             let folder = model_folder(&model);
@@ -614,6 +656,57 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
     }
     for line in &unreadable {
         eprintln!("unreadable: {line}");
+    }
+    Ok(())
+}
+
+/// `meshstream-train bench`: one row per batch size.
+fn bench_command(
+    model: &Path,
+    device: &str,
+    positions: &[usize],
+    steps: usize,
+    max_padding: f64,
+    data: Option<PathBuf>,
+    json: bool,
+) -> anyhow::Result<()> {
+    let device = parse_device(device)?;
+    let cfg = meshstream::model::checkpoint::load_config(model)
+        .with_context(|| format!("reading {}", model.display()))?;
+    let folder = match data {
+        Some(dir) => {
+            let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quant_levels")?)?;
+            let folder = load_folder(&dir, Some("train"), cfg.max_faces, q)
+                .with_context(|| format!("loading {}", dir.display()))?;
+            Some(std::sync::Arc::new(folder))
+        }
+        None => None,
+    };
+    let mut table = comfy_table::Table::new();
+    let mut header = vec!["positions".to_string(), "passes".into(), "faces/s".into()];
+    header.extend(StepPhases::PHASES.iter().map(|p| format!("{p} ms")));
+    table.set_header(header);
+    for &n in positions {
+        let phases = bench_train_step(model, folder.clone(), n, steps, max_padding, &device)
+            .with_context(|| format!("timing steps of {n} positions"))?;
+        if json {
+            println!("{}", serde_json::to_string(&phases)?);
+            continue;
+        }
+        let mut row = vec![
+            phases.positions.to_string(),
+            format!("{:.1}", phases.passes),
+            format!("{:.0}", phases.faces_per_s),
+        ];
+        row.extend(phases.times().iter().map(|t| format!("{:.1}", t * 1e3)));
+        table.add_row(row);
+    }
+    if !json {
+        println!("{table}");
+        println!(
+            "{device:?}, {}: ms per step by phase, each waited out on the device",
+            model.display()
+        );
     }
     Ok(())
 }

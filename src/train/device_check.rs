@@ -5,17 +5,16 @@
 use std::path::Path;
 use std::time::Instant;
 
-use candle_core::{DType, Device};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::Device;
 use serde::Serialize;
 
 use crate::metrics::MetricOptions;
-use crate::model::checkpoint::load_into_varmap;
-use crate::model::{EncoderTraining, FaceModel, TrainBatch, checkpoint};
+use crate::model::{EncoderTraining, TrainBatch, checkpoint};
 
 use super::TrainError;
 use super::augment::AugmentConfig;
 use super::batch::SampleConfig;
+use super::bench::trainable_model;
 use super::evaluate::{EvalSet, evaluate, example};
 use super::optim::clip_grad_norm;
 
@@ -65,9 +64,7 @@ pub fn check_device(
     let set = EvalSet::build(None, 0, meshes.max(1), &sample, cfg.max_faces)?;
     let positions = set.items.iter().map(|(_, s)| s.faces.len() + 1).sum();
     let run = |device: &Device| -> Result<DeviceResult, TrainError> {
-        let varmap = VarMap::new();
-        let model = FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, device))?;
-        load_into_varmap(model_dir, &varmap, device)?;
+        let (_, varmap, model) = trainable_model(model_dir, device)?;
         let examples: Vec<_> = set.items.iter().map(|(_, s)| example(s)).collect();
         let batch = TrainBatch::new(&examples, device)?;
         let step = || -> Result<(f64, f64), TrainError> {
