@@ -180,14 +180,12 @@ impl ShapeEncoder {
         }
         let input = Tensor::cat(&[points, normals], 2)?;
         let embedded = self.point_embed.forward(&self.fourier.forward(&input)?)?;
-        // Gather the queries from the flattened batch: row r's index i is r * M + i.
-        let offsets = (Tensor::arange(0u32, b as u32, points.device())? * m as f64)?
-            .to_dtype(DType::U32)?
-            .reshape((b, 1))?;
-        let flat_idx = query_indices.broadcast_add(&offsets)?.flatten_all()?;
+        // Each row's queries gathered along its points. A gather's gradient (scatter_add)
+        // runs on CUDA one thread per (row, channel); a lookup's (`index_select` on the
+        // flattened batch) one per channel, looping over every query of the batch.
         let width = embedded.dim(2)?;
-        let queries =
-            embedded.reshape((b * m, width))?.index_select(&flat_idx, 0)?.reshape((b, k, width))?;
+        let index = query_indices.unsqueeze(2)?.broadcast_as((b, k, width))?.contiguous()?;
+        let queries = embedded.contiguous()?.gather(&index, 1)?;
         let mut x = self.query_block.forward(&queries, &embedded)?;
         for layer in &self.layers {
             x = layer.forward(&x)?;
