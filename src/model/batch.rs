@@ -27,7 +27,7 @@ pub struct TrainBatch {
     pub lengths: Vec<usize>,
     /// The largest coordinate in `faces` and the largest query index, known on the host:
     /// checking them there spares the device two copies back (stalls) in every forward pass.
-    pub max_coordinate: u16,
+    pub max_coordinate: u32,
     pub max_query_index: u32,
     /// Each face's first coordinate, (B, N) on the host: the first sub-head's targets, made
     /// without copying `faces` back from the device.
@@ -66,6 +66,9 @@ impl TrainBatch {
         let queries: Vec<u32> =
             examples.iter().flat_map(|e| e.query_indices.iter().copied()).collect();
         let first_coordinates = faces.iter().step_by(COORDS_PER_FACE).copied().collect();
+        // Padding is zeros, so it never raises a maximum.
+        let max_coordinate = faces.iter().copied().max().unwrap_or(0);
+        let max_query_index = queries.iter().copied().max().unwrap_or(0);
         Ok(Self {
             points: Tensor::from_vec(
                 flat3(&|e| e.points.iter().flatten().copied().collect()),
@@ -80,16 +83,8 @@ impl TrainBatch {
             query_indices: Tensor::from_vec(queries, (b, k), device)?,
             faces: Tensor::from_vec(faces, (b, n, COORDS_PER_FACE), device)?,
             lengths: examples.iter().map(|e| e.faces.len()).collect(),
-            max_coordinate: examples
-                .iter()
-                .flat_map(|e| e.faces.iter().flatten().copied())
-                .max()
-                .unwrap_or(0),
-            max_query_index: examples
-                .iter()
-                .flat_map(|e| e.query_indices.iter().copied())
-                .max()
-                .unwrap_or(0),
+            max_coordinate,
+            max_query_index,
             first_coordinates,
         })
     }

@@ -306,7 +306,7 @@ impl FaceModel {
             EncoderTraining::Trained => enc.sample()?,
             EncoderTraining::Frozen => enc.sample()?.detach(),
         };
-        self.check_coordinates(usize::from(batch.max_coordinate))?;
+        self.check_coordinates(batch.max_coordinate as usize)?;
         let hidden = self.hidden_states_of_checked(&latents, &batch.faces)?;
         Ok((self.teacher_forced_logits(&hidden, &batch.faces)?, enc))
     }

@@ -6,32 +6,18 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use candle_core::{DType, Device};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::Device;
 use serde::Serialize;
 
-use crate::model::checkpoint::{load_config, load_into_varmap};
-use crate::model::{FaceConfig, FaceModel, TrainBatch};
+use crate::model::TrainBatch;
 
 use super::TrainError;
 use super::augment::AugmentConfig;
 use super::batch::{BatchConfig, BatchSource, CurriculumStage, SampleConfig};
+use super::checkpoint::trainable_model;
 use super::dataset::FolderData;
 use super::evaluate::example;
 use super::optim::{OptimConfig, Optimizer, clip_grad_norm, default_rule};
-
-/// A trained model's weights in a training `VarMap` on `device`: what a run started with
-/// `--init` trains.
-pub fn trainable_model(
-    dir: &Path,
-    device: &Device,
-) -> Result<(FaceConfig, VarMap, FaceModel), TrainError> {
-    let cfg = load_config(dir)?;
-    let varmap = VarMap::new();
-    let model = FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, device))?;
-    load_into_varmap(dir, &varmap, device)?;
-    Ok((cfg, varmap, model))
-}
 
 /// Seconds per step, by phase, averaged over the timed steps.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -195,6 +181,7 @@ impl<'a> PhaseClock<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::FaceConfig;
     use crate::model::checkpoint;
     use crate::model::testing::random_model;
 

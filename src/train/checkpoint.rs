@@ -5,10 +5,11 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::VarMap;
+use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use crate::model::checkpoint as model_checkpoint;
+use crate::model::{FaceConfig, FaceModel};
 
 use super::TrainError;
 use super::optim::Optimizer;
@@ -162,6 +163,19 @@ pub fn read_weights(
     Ok(weights)
 }
 
+/// A trained model's weights in a training `VarMap` on `device`: what a run started with
+/// `--init` trains.
+pub fn trainable_model(
+    dir: &Path,
+    device: &Device,
+) -> Result<(FaceConfig, VarMap, FaceModel), TrainError> {
+    let cfg = model_checkpoint::load_config(dir)?;
+    let varmap = VarMap::new();
+    let model = FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, device))?;
+    model_checkpoint::load_into_varmap(dir, &varmap, device)?;
+    Ok((cfg, varmap, model))
+}
+
 /// Writes what inference needs (`config.json` + `model.safetensors`, no optimizer state) from
 /// a checkpoint or model directory of a face autoencoder or a diffusion model, with the
 /// weights stored as `dtype` (F16 halves the size). Weights with more than `max_shard_bytes`
@@ -221,7 +235,7 @@ pub fn parse_shard_size(text: &str) -> Result<u64, String> {
 #[derive(Serialize)]
 #[serde(untagged)]
 enum AnyConfig {
-    Face(crate::model::FaceConfig),
+    Face(FaceConfig),
     Dit(Box<crate::diffusion::DitConfig>),
 }
 

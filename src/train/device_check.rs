@@ -14,7 +14,7 @@ use crate::model::{EncoderTraining, TrainBatch, checkpoint};
 use super::TrainError;
 use super::augment::AugmentConfig;
 use super::batch::SampleConfig;
-use super::bench::trainable_model;
+use super::checkpoint::trainable_model;
 use super::evaluate::{EvalSet, evaluate, example};
 use super::optim::clip_grad_norm;
 
