@@ -32,7 +32,7 @@ for method in hull poisson; do
   done
   echo "== $method: built in $((SECONDS - start)) s"
   echo "== $method, lowpoly dev split"
-  "$bin" eval --pred "$out/$method-dev" --gt "$out/dev-gt" | tail -n 6
+  "$bin" eval --pred "$out/$method-dev" --gt "$out/dev-gt" | sed -n '/^| set /,$p'
   echo "== $method, famous-dev"
   "$bin" eval --pred "$out/$method-famous" --gt "$data/famous-dev"
 done

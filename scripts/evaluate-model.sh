@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Reconstructs every mesh of the lowpoly dev split and of famous-dev from points sampled on
 # its surface, then scores the results against the ground truth with `meshstream eval`
-# (DESIGN.md's CD/HD). Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...],
-# e.g. --face-beam 1. With TURN=DEGREES in the environment every mesh is first turned about the
+# (DESIGN.md's CD/HD, faces right, boundary and non-manifold edges, connected parts).
+# Usage: scripts/evaluate-model.sh [MODEL_DIR] [OUT_DIR] [RECONSTRUCT FLAGS...], e.g.
+# --face-beam 1. With TURN=DEGREES in the environment every mesh is first turned about the
 # vertical axis by that angle (`meshstream convert --turn`), so its walls are off the axes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -39,7 +40,7 @@ for gt_dir in "$out/dev-gt" "$famous_gt"; do
       || echo "no reconstruction for $name" >&2
   done
 done
-echo "== lowpoly dev split"
-"$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | tail -n 6
+echo "== lowpoly dev split (the summary; every mesh's row: meshstream eval --pred $out/dev-pred --gt $out/dev-gt)"
+"$bin" eval --pred "$out/dev-pred" --gt "$out/dev-gt" | sed -n '/^| set /,$p'
 echo "== famous-dev"
 "$bin" eval --pred "$out/famous-pred" --gt "$famous_gt"

@@ -16,7 +16,9 @@ use crate::model::{
     FaceModel, FaceToken, FinishReason, GenerateOptions, Generation, ModelError, SamplingParams,
     step_generations,
 };
-use crate::tokenize::{Quantizer, canonical_triangulation_near_grid, detokenize};
+use crate::tokenize::{
+    Quantizer, canonical_triangulation_near_grid, detokenize, weld_near_corners,
+};
 
 /// The most candidates a reconstruction may ask for: each is a decoder row.
 pub const MAX_CANDIDATES: usize = 16;
@@ -25,6 +27,25 @@ pub const MAX_CANDIDATES: usize = 16;
 /// CLI's, and HTTP requests answered with a whole mesh (a server setting). Four cost about
 /// twice one decode and take a fifth off the dev split's Chamfer distance (the model card).
 pub const DEFAULT_CANDIDATES: usize = 4;
+
+/// Corners a whole mesh's candidates merge when within this many grid cells of each other, when
+/// a request does not say (a server setting for HTTP whole meshes; streams keep their faces as
+/// decoded): one cell closes the cracks the shipped model leaves between faces that should
+/// share a corner (`docs/decisions.md`, "Welding").
+pub const DEFAULT_WELD_RADIUS: u16 = 1;
+
+/// The widest weld a request may ask for: past a few cells welding flattens small parts.
+pub const MAX_WELD_RADIUS: u16 = 4;
+
+/// How a reconstruction ends each candidate before judging it: its corners welded, then
+/// fitted to the input points.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Ending {
+    /// Corners within this many grid cells merge ([`weld_near_corners`]); 0 keeps them apart.
+    pub weld_radius: u16,
+    /// Fitting to the input points; `None` keeps the corners on the grid.
+    pub fit: Option<FitOptions>,
+}
 
 /// Points sampled on each candidate's surface to compare it with the input points.
 const FIT_SAMPLES: usize = 4096;
@@ -118,15 +139,15 @@ pub fn input_distance(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> f64 {
 pub struct Finished {
     /// Its place among the candidates.
     pub index: usize,
-    /// Its faces as decoded (normalized frame).
+    /// Its faces as decoded and welded (normalized frame, on the grid).
     pub decoded: Mesh,
     /// What the reconstruction returns: `decoded` fitted to the input ([`fitted_mesh`]), or
     /// `decoded` itself when not fitted.
     pub mesh: Mesh,
 }
 
-/// Ends each candidate as a reconstruction does (fitted to `cloud` when `fit` is given) and
-/// keeps the one that ends closest to the cloud's points (the first on ties); `None` for none.
+/// Ends each candidate as `ending` says (welded, then fitted to `cloud` when asked) and keeps
+/// the one that ends closest to the cloud's points (the first on ties); `None` for none.
 ///
 /// Why judged once fitted: a decoded corner sits on the grid, often a step or more off, so
 /// judged as decoded the pick weighed that noise as much as the faces; judged as they end,
@@ -135,7 +156,7 @@ pub fn closest_finished<'a>(
     candidates: impl ExactSizeIterator<Item = &'a [FaceToken]>,
     q: Quantizer,
     cloud: &Mesh,
-    fit: Option<&FitOptions>,
+    ending: &Ending,
     seed: u64,
 ) -> Option<Finished> {
     let judge = candidates.len() > 1; // one has nothing to be compared with
@@ -146,8 +167,8 @@ pub fn closest_finished<'a>(
         .into_par_iter()
         .enumerate()
         .map(|(index, faces)| {
-            let decoded = detokenize(faces, q);
-            let mesh = match fit {
+            let decoded = detokenize(&weld_near_corners(faces, ending.weld_radius), q);
+            let mesh = match &ending.fit {
                 Some(fit) => fitted_mesh(&decoded, q, cloud, fit, seed),
                 None => decoded.clone(),
             };
@@ -190,14 +211,14 @@ pub fn best_of(
     latents: &[Tensor],
     options: Vec<GenerateOptions>,
     cloud: &Mesh,
-    fit: Option<&FitOptions>,
+    ending: &Ending,
     q: Quantizer,
     on_face: impl FnMut(),
 ) -> Result<(Candidate, Mesh), ModelError> {
     let seed = options.first().map_or(0, |o| o.sampling.seed);
     let mut candidates = decode_candidates(model, latents, options, on_face)?;
     let faces = candidates.iter().map(|c| c.faces.as_slice());
-    let best = closest_finished(faces, q, cloud, fit, seed)
+    let best = closest_finished(faces, q, cloud, ending, seed)
         .ok_or_else(|| ModelError::BadInput("no candidates".into()))?;
     Ok((candidates.swap_remove(best.index), best.mesh))
 }
@@ -268,29 +289,48 @@ mod tests {
         let whole = tokenize(&cube, q).faces;
         // Half a cube, the whole cube, and nothing at all.
         let candidates = [&whole[..6], &whole[..], &[]];
-        let pick = |fit| closest_finished(candidates.into_iter(), q, &cloud, fit, 0).unwrap();
-        let best = pick(None);
+        let as_decoded = Ending::default();
+        let best = closest_finished(candidates.into_iter(), q, &cloud, &as_decoded, 0).unwrap();
         assert_eq!(best.index, 1);
         assert_eq!(best.mesh, best.decoded);
         assert!(input_distance(&best.mesh, &cloud.vertices, 0) < 0.1);
         assert_eq!(input_distance(&detokenize(&[], q), &cloud.vertices, 0), f64::INFINITY);
-        assert_eq!(closest_finished(std::iter::empty(), q, &cloud, None, 0), None);
+        assert_eq!(closest_finished(std::iter::empty(), q, &cloud, &as_decoded, 0), None);
         // A whole cube decoded a fifth too small, and the right one with one side half
         // missing: as decoded the second is closer, fitted (as the reconstruction ends them)
         // the first, which ends closer than the second as decoded.
         let small = tokenize(&cuboid([1.28, 1.28, 1.28]), q).faces;
         let holed = &whole[..whole.len() - 1];
         let candidates = [&small[..], holed];
-        let judge = |fit| closest_finished(candidates.into_iter(), q, &cloud, fit, 0).unwrap();
-        let decoded = judge(None);
+        let judge =
+            |ending| closest_finished(candidates.into_iter(), q, &cloud, &ending, 0).unwrap();
+        let decoded = judge(as_decoded);
         assert_eq!(decoded.index, 1);
-        let fit = FitOptions::default();
-        let fitted = judge(Some(&fit));
+        let fitted = judge(Ending { fit: Some(FitOptions::default()), ..as_decoded });
         assert_eq!(fitted.index, 0);
         let distance = |mesh: &Mesh| input_distance(mesh, &cloud.vertices, 0);
         assert!(distance(&fitted.mesh) < distance(&decoded.mesh));
         // One candidate is not judged: it ends as it is, whatever it is.
-        let alone = closest_finished([&[][..]].into_iter(), q, &cloud, None, 0).unwrap();
+        let alone = closest_finished([&[][..]].into_iter(), q, &cloud, &as_decoded, 0).unwrap();
         assert_eq!(alone.index, 0);
+    }
+
+    #[test]
+    fn candidates_are_welded_before_they_are_fitted_and_judged() {
+        let q = Quantizer::new(128).unwrap();
+        let cube = cuboid([1.6, 1.6, 1.6]);
+        let cloud = sample_surface(&cube, 4096, 3).unwrap();
+        let whole = tokenize(&cube, q).faces;
+        // One face's corner a cell off: a crack the weld closes, so fitting moves that corner
+        // once for every face on it.
+        let mut cracked = whole.clone();
+        cracked[5][3..6].iter_mut().for_each(|c| *c -= 1);
+        let ending = |weld_radius| Ending { weld_radius, fit: Some(FitOptions::default()) };
+        let end = |weld| closest_finished([&cracked[..]].into_iter(), q, &cloud, &ending(weld), 0);
+        let welded = end(1).unwrap();
+        assert_eq!(welded.decoded, detokenize(&whole, q));
+        assert_eq!(crate::metrics::topology(&welded.mesh).boundary_edges, 0);
+        let apart = end(0).unwrap();
+        assert!(crate::metrics::topology(&apart.mesh).boundary_edges > 0);
     }
 }

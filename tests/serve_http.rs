@@ -181,6 +181,7 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
     let c = client();
     let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["defaults"]["fit_rounds"], json!({"whole_mesh": 7, "stream": 0}));
+    assert_eq!(info["defaults"]["weld_radius"], json!({"whole_mesh": 1, "stream": 0}));
     assert_eq!(info["defaults"]["reference_points"], 500);
     let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
     let fitted = read(&reconstruct_glb(&server, &points_json(&shape(), json!({}))).await.1);
@@ -190,8 +191,8 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
     // its moved corners, so as many faces, not the same triples).
     assert_eq!(fitted.faces.len(), decoded.faces.len());
     assert_ne!(fitted.vertices, decoded.vertices);
-    // A stream that asks is fitted alike; its faces come together at the end.
-    let asked = points_json(&shape(), json!({"fit_rounds": 7}));
+    // A stream that asks is welded and fitted alike; its faces come together at the end.
+    let asked = points_json(&shape(), json!({"fit_rounds": 7, "weld_radius": 1}));
     let (faces, _) = stream_events(&server, &asked, "application/x-ndjson").await;
     assert_eq!(faces.len(), fitted.faces.len());
     for (i, (_, f)) in faces.iter().enumerate() {
@@ -327,6 +328,13 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (
             json,
             format!(r#"{{"points": {three}, "fit_rounds": 201}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "weld_radius": 5}}"#).into_bytes(),
             "",
             422,
             "invalid_input",

@@ -8,15 +8,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{FitOptions, REFERENCE_POINTS, ReadLimits, primitives, sample_surface};
+use meshstream::mesh::{REFERENCE_POINTS, ReadLimits, primitives, sample_surface};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
     Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
 };
-use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
+use meshstream::server::{
+    ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
+};
 
 use super::out;
 
@@ -75,8 +76,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             read: ReadLimits::default(),
         },
         max_body_bytes: 64 << 20,
-        whole_mesh_candidates: DEFAULT_CANDIDATES,
-        whole_mesh_fit_rounds: FitOptions::default().rounds,
+        whole_mesh: WholeMeshDefaults::default(),
         request_timeout: Duration::from_secs(600),
         shutdown_grace: Duration::from_secs(5),
         image: ImageServeConfig::default(),

@@ -4,7 +4,7 @@ use anyhow::Context;
 use clap::Args;
 use meshstream::mesh::transform::rotation;
 use meshstream::mesh::{Format, Normalization, write_mesh_file};
-use meshstream::tokenize::{Quantizer, detokenize, tokenize_mesh};
+use meshstream::tokenize::{Quantizer, detokenize, tokenize_mesh, weld_near_corners};
 
 use super::load_mesh;
 
@@ -26,6 +26,11 @@ pub struct ConvertArgs {
     /// from its smallest corner (as training data is), and keeps the input's coordinates.
     #[arg(long, value_name = "Q")]
     quantize: Option<u16>,
+    /// With --quantize: then merge corners within this many grid cells of each other on
+    /// every axis, as reconstructions do (`reconstruct --weld-radius`): what welding would do
+    /// to a right mesh.
+    #[arg(long, value_name = "CELLS", default_value_t = 0, requires = "quantize")]
+    weld_radius: u16,
     /// Move the result into the models' frame (bounding box centred at the origin, longest
     /// side from -1 to 1), where meshes generated from images are: to compare them.
     #[arg(long)]
@@ -42,7 +47,16 @@ pub fn run(args: &ConvertArgs) -> anyhow::Result<()> {
         let q = Quantizer::new(levels)?;
         let (tokenized, normalization) = tokenize_mesh(&mesh, q).context("quantizing")?;
         let before = mesh.faces.len();
-        mesh = normalization.invert_mesh(&detokenize(&tokenized.faces, q));
+        let faces = weld_near_corners(&tokenized.faces, args.weld_radius);
+        if args.weld_radius > 0 {
+            eprintln!(
+                "welded corners within {} cells: {} faces -> {}",
+                args.weld_radius,
+                tokenized.faces.len(),
+                faces.len()
+            );
+        }
+        mesh = normalization.invert_mesh(&detokenize(&faces, q));
         eprintln!(
             "quantized to Q = {levels}: {before} faces -> {} ({} collapsed, {} repeated)",
             mesh.faces.len(),

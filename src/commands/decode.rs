@@ -9,8 +9,8 @@ use anyhow::Context;
 use candle_core::Tensor;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use meshstream::candidates::{best_of, candidate_options};
-use meshstream::mesh::{FitOptions, Format, Mesh, Normalization, write_mesh_file};
+use meshstream::candidates::{Ending, best_of, candidate_options};
+use meshstream::mesh::{Format, Mesh, Normalization, write_mesh_file};
 use meshstream::model::{
     DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, GenerateOptions, SamplingParams, generate,
 };
@@ -50,11 +50,11 @@ pub fn progress(bar: ProgressBar, template: &str) -> ProgressBar {
 
 /// What a reconstruction decodes from besides its latents: its input points (normalized
 /// frame, with normals), how many candidate meshes to decode and judge against them, and how
-/// to fit them to them.
+/// to end them (welded, fitted to the points).
 pub struct FromPoints<'a> {
     pub cloud: &'a Mesh,
     pub candidates: usize,
-    pub fit: FitOptions,
+    pub ending: Ending,
 }
 
 /// Decodes `latents` (each (K, latent_dim)) into faces, takes them to the caller's frame with
@@ -88,9 +88,9 @@ pub fn decode_to_file(
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
     let (mesh, reason) = match from_points {
         Some(p) => {
-            let fit = (p.fit.rounds > 0).then_some(&p.fit);
             let options = candidate_options(&options, p.candidates);
-            let (best, mesh) = best_of(model, latents, options, p.cloud, fit, q, || bar.inc(1))?;
+            let (best, mesh) =
+                best_of(model, latents, options, p.cloud, &p.ending, q, || bar.inc(1))?;
             (mesh, best.finish)
         }
         None => {

@@ -5,8 +5,8 @@ use clap::Args;
 use meshstream::mesh::mesh_files_in;
 use meshstream::metrics::{
     DEFAULT_FACE_TOLERANCE, Distances, EvalRecord, EvalSummary, FaceMatch, FaceSummary,
-    MetricOptions, PairedDifference, face_match, mesh_distances, paired_chamfer, summarize,
-    summarize_faces,
+    MetricOptions, PairedDifference, Topology, TopologySummary, face_match, mesh_distances,
+    paired_chamfer, summarize, summarize_faces, summarize_topology, topology,
 };
 use serde::Serialize;
 
@@ -54,7 +54,18 @@ struct Row {
     /// Faces of the prediction that the ground truth has; `None` for a point-cloud ground
     /// truth or a failure.
     faces: Option<FaceMatch>,
+    /// How the prediction and the ground truth are put together; `None` for a failure.
+    topology: Option<Topology>,
+    truth_topology: Option<Topology>,
     failure: Option<String>,
+}
+
+/// What one pair of meshes scores beyond its distances.
+#[derive(Clone, Copy)]
+struct Shape {
+    faces: Option<FaceMatch>,
+    topology: Topology,
+    truth_topology: Topology,
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
@@ -63,7 +74,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "--face-tolerance must be a finite distance, not negative"
     );
     let opts = MetricOptions { samples: args.samples, seed: args.seed };
-    let (records, faces) = evaluate_all(&args.pred, &args.gt, &opts, args.face_tolerance)?;
+    let (records, shapes) = evaluate_all(&args.pred, &args.gt, &opts, args.face_tolerance)?;
     let against = match &args.against {
         Some(other) => {
             let (other_records, _) = evaluate_all(other, &args.gt, &opts, args.face_tolerance)?;
@@ -72,11 +83,16 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         None => None,
     };
     let summary = summarize(&records);
-    let face_summary = summarize_faces(&faces.iter().flatten().copied().collect::<Vec<_>>());
+    let scored: Vec<&Shape> = shapes.iter().flatten().collect();
+    let face_summary = summarize_faces(&scored.iter().filter_map(|s| s.faces).collect::<Vec<_>>());
+    let topology_summary = TopologySummaries {
+        prediction: summarize_topology(&scored.iter().map(|s| s.topology).collect::<Vec<_>>()),
+        truth: summarize_topology(&scored.iter().map(|s| s.truth_topology).collect::<Vec<_>>()),
+    };
     let rows: Vec<Row> = records
         .iter()
-        .zip(&faces)
-        .map(|(r, &faces)| {
+        .zip(&shapes)
+        .map(|(r, shape)| {
             let d = r.result.as_ref().ok();
             Row {
                 name: r.name.clone(),
@@ -84,20 +100,23 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 hausdorff: d.map(|d| d.hausdorff),
                 accuracy: d.map(|d| d.accuracy),
                 completeness: d.map(|d| d.completeness),
-                faces,
+                faces: shape.and_then(|s| s.faces),
+                topology: shape.map(|s| s.topology),
+                truth_topology: shape.map(|s| s.truth_topology),
                 failure: r.result.as_ref().err().cloned(),
             }
         })
         .collect();
     if args.json {
-        let mut report =
-            serde_json::json!({ "meshes": rows, "summary": summary, "faces": face_summary });
+        let mut report = serde_json::json!({ "meshes": rows, "summary": summary, "faces": face_summary,
+                "topology": topology_summary });
         if let Some((summary, paired)) = &against {
             report["against"] = serde_json::json!({ "summary": summary, "paired": paired });
         }
         out(serde_json::to_string_pretty(&report)?)?;
     } else {
         print_tables(&rows, &summary, &face_summary, args.face_tolerance)?;
+        print_topology(&topology_summary)?;
         if let Some((summary, paired)) = &against {
             print_comparison(summary, paired)?;
         }
@@ -105,21 +124,29 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// One record per ground-truth mesh, and the faces it shares with its prediction.
+/// Both topologies' summaries.
+#[derive(Serialize)]
+struct TopologySummaries {
+    prediction: TopologySummary,
+    truth: TopologySummary,
+}
+
+/// One record per ground-truth mesh, and what else its prediction scores (`None` for a
+/// failure).
 fn evaluate_all(
     pred: &Path,
     gt: &Path,
     opts: &MetricOptions,
     face_tolerance: f32,
-) -> anyhow::Result<(Vec<EvalRecord>, Vec<Option<FaceMatch>>)> {
+) -> anyhow::Result<(Vec<EvalRecord>, Vec<Option<Shape>>)> {
     Ok(pair_up(pred, gt)?
         .iter()
         .map(|(name, pred, gt)| {
-            let (result, faces) = match evaluate_pair(pred.as_deref(), gt, opts, face_tolerance) {
-                Ok((d, f)) => (Ok(d), f),
+            let (result, shape) = match evaluate_pair(pred.as_deref(), gt, opts, face_tolerance) {
+                Ok((d, shape)) => (Ok(d), Some(shape)),
                 Err(e) => (Err(e), None),
             };
-            (EvalRecord { name: name.clone(), result }, faces)
+            (EvalRecord { name: name.clone(), result }, shape)
         })
         .unzip())
 }
@@ -153,21 +180,22 @@ fn stem(path: &Path) -> String {
     path.file_stem().map_or_else(String::new, |s| s.to_string_lossy().into_owned())
 }
 
-/// Distances for one pair and, when the ground truth has faces, the faces they share; or why
-/// the prediction counts as a failure.
+/// Distances for one pair, both topologies and, when the ground truth has faces, the faces
+/// they share; or why the prediction counts as a failure.
 fn evaluate_pair(
     pred: Option<&Path>,
     gt: &Path,
     opts: &MetricOptions,
     face_tolerance: f32,
-) -> Result<(Distances, Option<FaceMatch>), String> {
+) -> Result<(Distances, Shape), String> {
     let pred = pred.ok_or("missing prediction")?;
     let pred = load_mesh(pred).map_err(|e| format!("unreadable prediction: {e:#}"))?;
     let gt = load_mesh(gt).map_err(|e| format!("unreadable ground truth: {e:#}"))?;
     let distances = mesh_distances(&pred, &gt, opts).map_err(|e| e.to_string())?;
     // The distances passed and `run` checked the tolerance: only a faceless ground truth is
     // left to fail.
-    Ok((distances, face_match(&pred, &gt, face_tolerance).ok()))
+    let faces = face_match(&pred, &gt, face_tolerance).ok();
+    Ok((distances, Shape { faces, topology: topology(&pred), truth_topology: topology(&gt) }))
 }
 
 fn print_tables(
@@ -178,7 +206,18 @@ fn print_tables(
 ) -> anyhow::Result<()> {
     let mut table = super::table();
     // Accuracy: prediction -> ground truth; completeness: ground truth -> prediction.
-    table.set_header(["mesh", "CD", "HD", "acc.", "compl.", "faces right", "failure"]);
+    table.set_header([
+        "mesh",
+        "CD",
+        "HD",
+        "acc.",
+        "compl.",
+        "faces right",
+        "boundary",
+        "non-manif.",
+        "parts (truth)",
+        "failure",
+    ]);
     for r in rows {
         table.add_row([
             r.name.clone(),
@@ -190,6 +229,12 @@ fn print_tables(
                 || "-".to_string(),
                 |f| format!("{} of {} ({} made)", f.matched, f.truth, f.predicted),
             ),
+            percent(r.topology.map(|t| t.boundary_share())),
+            percent(r.topology.map(|t| t.non_manifold_share())),
+            match (r.topology, r.truth_topology) {
+                (Some(t), Some(truth)) => format!("{} ({})", t.parts, truth.parts),
+                _ => "-".to_string(),
+            },
             r.failure.clone().unwrap_or_default(),
         ]);
     }
@@ -245,6 +290,26 @@ fn print_comparison(other: &EvalSummary, p: &PairedDifference) -> anyhow::Result
         p.a_better,
         p.b_better
     ))
+}
+
+/// How the predictions are put together, beside the ground truth.
+fn print_topology(t: &TopologySummaries) -> anyhow::Result<()> {
+    let mut table = super::table();
+    table.set_header(["topology (means)", "boundary edges", "non-manifold edges", "parts"]);
+    for (name, s) in [("prediction", &t.prediction), ("ground truth", &t.truth)] {
+        table.add_row([
+            name.to_string(),
+            percent(s.boundary_share_mean),
+            percent(s.non_manifold_share_mean),
+            s.parts_mean.map_or_else(|| "-".to_string(), |p| format!("{p:.1}")),
+        ]);
+    }
+    out(&table)
+}
+
+/// A share as a percentage to one place, or "-" where there is none.
+fn percent(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".to_string(), |v| format!("{:.1}%", 100.0 * v))
 }
 
 /// A figure to four places, or "-" where there is none.

@@ -3,7 +3,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::candidates::DEFAULT_CANDIDATES;
+use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS};
 use meshstream::mesh::{FitOptions, REFERENCE_POINTS, input_clouds};
 use meshstream::model::{checkpoint, parse_device};
 
@@ -37,6 +37,12 @@ pub struct ReconstructArgs {
     /// where the model put them.
     #[arg(long, default_value_t = FitOptions::default().rounds)]
     fit_rounds: usize,
+    /// Merge each candidate's corners that lie within this many grid cells of each other on
+    /// every axis, before fitting (at most 4): closes the cracks between faces that should
+    /// share a corner; 0 keeps them as decoded.
+    #[arg(long, default_value_t = DEFAULT_WELD_RADIUS,
+          value_parser = clap::value_parser!(u16).range(..=i64::from(MAX_WELD_RADIUS)))]
+    weld_radius: u16,
     /// The furthest fitting may move a corner, in units of half the input's longest side.
     #[arg(long, default_value_t = FitOptions::default().max_shift)]
     fit_max_shift: f32,
@@ -74,7 +80,8 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         max_shift: args.fit_max_shift,
         ..FitOptions::default()
     };
-    let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, fit };
+    let ending = Ending { weld_radius: args.weld_radius, fit: (fit.rounds > 0).then_some(fit) };
+    let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
     decode_to_file(
         &model,
         &latents,

@@ -5,11 +5,13 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use meshstream::candidates::DEFAULT_CANDIDATES;
+use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{checkpoint, parse_device};
-use meshstream::server::{ImageServeConfig, InputLimits, Listeners, ServeConfig, serve};
+use meshstream::server::{
+    ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
+};
 use tracing_subscriber::EnvFilter;
 
 use super::out;
@@ -95,6 +97,12 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_FIT_ROUNDS", default_value_t = FitOptions::default().rounds as u16,
           value_parser = clap::value_parser!(u16).range(..=MAX_FIT_ROUNDS as i64))]
     fit_rounds: u16,
+    /// Grid cells within which a reconstruction answered with a whole mesh that does not say
+    /// merges its candidates' corners, before fitting (see `reconstruct --weld-radius`; at
+    /// most 4); streamed answers take 0 unless they say.
+    #[arg(long, env = "MESHSTREAM_WELD_RADIUS", default_value_t = DEFAULT_WELD_RADIUS,
+          value_parser = clap::value_parser!(u16).range(..=i64::from(MAX_WELD_RADIUS)))]
+    weld_radius: u16,
     /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
     /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
     #[arg(long, env = "MESHSTREAM_IMAGE_MODEL")]
@@ -166,8 +174,11 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             },
         },
         max_body_bytes: args.max_body_bytes,
-        whole_mesh_candidates: args.candidates,
-        whole_mesh_fit_rounds: usize::from(args.fit_rounds),
+        whole_mesh: WholeMeshDefaults {
+            candidates: args.candidates,
+            weld_radius: args.weld_radius,
+            fit_rounds: usize::from(args.fit_rounds),
+        },
         request_timeout: seconds("request-timeout", args.request_timeout)?,
         shutdown_grace: seconds("shutdown-grace", args.shutdown_grace)?,
         model_dir: args.model.clone(),

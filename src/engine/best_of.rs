@@ -1,18 +1,19 @@
-//! Best-of-N and fitted requests (`DecodeOptions::candidates`, `fit_rounds`): the candidates
-//! run as ordinary requests, each reading its own draw of the input's points, batched with
-//! everything else, and a task streams the one that ends closest to the input points once all
-//! have finished (see `crate::candidates`), its corners fitted to those points when asked.
-//! Its faces therefore arrive together at the end, not one by one.
+//! Best-of-N, welded and fitted requests (`DecodeOptions::candidates`, `weld_radius`,
+//! `fit_rounds`): the candidates run as ordinary requests, each reading its own draw of the
+//! input's points, batched with everything else, and a task streams the one that ends closest
+//! to the input points once all have finished (see `crate::candidates`), its near corners
+//! welded and its corners fitted to those points when asked. Its faces therefore arrive
+//! together at the end, not one by one.
 
 use std::time::Instant;
 
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{Finished, candidate_sampling, closest_finished};
+use crate::candidates::{Ending, Finished, candidate_sampling, closest_finished};
 use crate::mesh::{FitOptions, Mesh};
 use crate::model::FaceToken;
-use crate::tokenize::{Quantizer, canonical_face, canonical_start, face_positions};
+use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
 use super::{
     Completed, Conditioning, DecodeOptions, Engine, EngineError, Event, Request, RequestStream,
@@ -36,9 +37,12 @@ pub(super) fn submit(
     let runtime = tokio::runtime::Handle::try_current()
         .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
     let cloud = prepared.reference.clone();
-    let fit = match request.options.fit_rounds.unwrap_or(0) {
-        0 => None,
-        rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
+    let ending = Ending {
+        weld_radius: request.options.weld_radius.unwrap_or(0),
+        fit: match request.options.fit_rounds.unwrap_or(0) {
+            0 => None,
+            rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
+        },
     };
     let normalization = prepared.normalization;
     let seed = request.options.sampling.seed;
@@ -55,6 +59,7 @@ pub(super) fn submit(
                     sampling,
                     candidates: None,
                     fit_rounds: None,
+                    weld_radius: None,
                     ..request.options.clone()
                 },
                 deadline: request.deadline,
@@ -71,12 +76,8 @@ pub(super) fn submit(
         };
         // Fitting and judging are CPU work: off the async runtime.
         let chosen = tokio::task::spawn_blocking(move || {
-            let (best, ended) = pick(finished, q, &cloud, fit.as_ref(), seed)?;
-            let faces = match fit {
-                Some(_) => fitted_faces(&ended, q),
-                None => best.tokens.iter().map(|t| (*t, face_positions(t, q))).collect(),
-            };
-            Ok((best, faces))
+            let (best, ended) = pick(finished, q, &cloud, &ending, seed)?;
+            Ok((best, ended_faces(&ended, q)))
         })
         .await
         .unwrap_or_else(|e| Err(EngineError::Model(format!("choosing a candidate failed: {e}"))));
@@ -101,11 +102,11 @@ pub(super) fn submit(
     Ok(RequestStream::new(request.id, rx))
 }
 
-/// The faces to stream for a fitted candidate as it `ended`: each face's grid cells and its
-/// corners (normalized frame). A fitted mesh keeps the decoded one's vertices in order (its
-/// flat polygons split again, [`crate::candidates::fitted_mesh`]), so a face's cells are
-/// those its fitted corners were decoded at.
-fn fitted_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])> {
+/// The faces to stream for a candidate as it `ended`: each face's grid cells and its corners
+/// (normalized frame). A fitted mesh keeps the decoded one's vertices in order (its flat
+/// polygons split again, [`crate::candidates::fitted_mesh`]), so a face's cells are those its
+/// fitted corners were decoded (and welded) at; an unfitted one is the decoded mesh itself.
+fn ended_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])> {
     let (decoded, mesh) = (&ended.decoded, &ended.mesh);
     let cell = |v: u32| decoded.vertices.get(v as usize).map(|p| p.map(|c| q.quantize(c)));
     mesh.faces
@@ -119,19 +120,19 @@ fn fitted_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3]
         .collect()
 }
 
-/// The finished candidate that ends closest to `cloud` (the first on ties; fitted to it when
-/// `fit` is given) and how it ends; the first error when none finished.
+/// The finished candidate that ends closest to `cloud` (the first on ties; ended as `ending`
+/// says) and how it ends; the first error when none finished.
 fn pick(
     finished: Vec<Result<Completed, EngineError>>,
     q: Quantizer,
     cloud: &Mesh,
-    fit: Option<&FitOptions>,
+    ending: &Ending,
     seed: u64,
 ) -> Result<(Completed, Finished), EngineError> {
     let (completed, failed): (Vec<_>, Vec<_>) = finished.into_iter().partition(Result::is_ok);
     let mut completed: Vec<Completed> = completed.into_iter().flatten().collect();
     let faces = completed.iter().map(|c| c.tokens.as_slice());
-    match closest_finished(faces, q, cloud, fit, seed) {
+    match closest_finished(faces, q, cloud, ending, seed) {
         Some(best) => Ok((completed.swap_remove(best.index), best)),
         None => Err(failed.into_iter().find_map(Result::err).unwrap_or(EngineError::Stopped)),
     }
@@ -142,7 +143,7 @@ mod tests {
     use super::*;
     use crate::mesh::primitives::{cuboid, cuboid_split};
     use crate::mesh::sample_surface;
-    use crate::tokenize::canonical_triangulation;
+    use crate::tokenize::{canonical_triangulation, face_positions};
 
     #[test]
     fn fitted_faces_stream_with_the_truths_splits_and_their_own_cells() {
@@ -168,9 +169,9 @@ mod tests {
                 .iter()
                 .map(|&[a, b, c]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
                 .collect();
-            let fit = FitOptions::default();
-            let ended = closest_finished([&decoded[..]].into_iter(), q, &cloud, Some(&fit), 0);
-            let streamed = fitted_faces(&ended.unwrap(), q);
+            let ending = Ending { weld_radius: 0, fit: Some(FitOptions::default()) };
+            let ended = closest_finished([&decoded[..]].into_iter(), q, &cloud, &ending, 0);
+            let streamed = ended_faces(&ended.unwrap(), q);
             assert_eq!(faces_of(&mut streamed.iter().map(|(_, c)| *c)), expected, "{diagonals}");
             for (token, corners) in &streamed {
                 // The token is the face on the decoded grid, corner for corner.

@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc;
 
-use crate::candidates::MAX_CANDIDATES;
+use crate::candidates::{MAX_CANDIDATES, MAX_WELD_RADIUS};
 use crate::diffusion::{DiffusionModel, DitConfig};
 use crate::mesh::MAX_FIT_ROUNDS;
 use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
@@ -153,12 +153,13 @@ impl Engine {
 
     /// Queues a request; its faces arrive on the returned stream. Refused at once when the
     /// queue is full or the engine is shutting down. A request for several candidates, or
-    /// fitted to its points, queues one request per candidate and needs a tokio runtime (see
+    /// welded or fitted, queues one request per candidate and needs a tokio runtime (see
     /// `best_of`).
     pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
         let options = &request.options;
-        match (options.candidates.unwrap_or(1), options.fit_rounds.unwrap_or(0)) {
-            (1, 0) => self.submit_one(request),
+        let ended = options.fit_rounds.unwrap_or(0) > 0 || options.weld_radius.unwrap_or(0) > 0;
+        match (options.candidates.unwrap_or(1), ended) {
+            (1, false) => self.submit_one(request),
             (n, _) => {
                 self.check(&request).inspect_err(|e| self.shared.metrics.reject(e.code()))?;
                 best_of::submit(self, request, n)
@@ -230,6 +231,17 @@ impl Engine {
         if fit_rounds > 0 && matches!(request.conditioning, Conditioning::Image(_)) {
             return Err(EngineError::InvalidInput(
                 "a mesh is fitted to input points: an image request has none".into(),
+            ));
+        }
+        let weld_radius = request.options.weld_radius.unwrap_or(0);
+        if weld_radius > MAX_WELD_RADIUS {
+            return Err(EngineError::InvalidInput(format!(
+                "weld_radius must be at most {MAX_WELD_RADIUS}, got {weld_radius}"
+            )));
+        }
+        if weld_radius > 0 && matches!(request.conditioning, Conditioning::Image(_)) {
+            return Err(EngineError::InvalidInput(
+                "welding ends a reconstruction's candidates: an image request takes 0".into(),
             ));
         }
         let cfg = &self.model_config;

@@ -164,6 +164,10 @@ pub struct DecodeOptions {
     /// points requests only. Its faces then arrive together at the end, as with candidates.
     /// `None` or 0: the corners as decoded, faces as they come.
     pub fit_rounds: Option<usize>,
+    /// Merge each finished candidate's corners within this many grid cells of each other
+    /// ([`crate::tokenize::weld_near_corners`]); points requests only, faces arriving at the
+    /// end as with candidates. `None` or 0: faces as they come.
+    pub weld_radius: Option<u16>,
 }
 
 #[derive(Debug, Clone)]

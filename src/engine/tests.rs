@@ -202,6 +202,12 @@ fn invalid_options_are_refused_before_queueing() {
     r.options.fit_rounds = Some(1);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
     r.options.fit_rounds = None;
+    r.options.weld_radius = Some(crate::candidates::MAX_WELD_RADIUS + 1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    // So does welding.
+    r.options.weld_radius = Some(1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
+    r.options.weld_radius = None;
     // Best-of-N runs a task that picks the winner: outside a runtime it has nowhere to run.
     r.options.candidates = Some(2);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));

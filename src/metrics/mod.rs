@@ -1,15 +1,18 @@
 //! Evaluation metrics: Chamfer and Hausdorff distances between meshes, with one definition
 //! everywhere (DESIGN.md, "Evaluation metrics"), the set-level summary, two predictions of one
-//! set compared mesh by mesh, and face-for-face agreement with a low-poly ground truth.
+//! set compared mesh by mesh, face-for-face agreement with a low-poly ground truth, and how a
+//! mesh is put together (boundary and non-manifold edges, connected parts).
 
 mod distances;
 mod error;
 mod faces;
 mod paired;
 mod summary;
+mod topology;
 
 pub use distances::{Distances, MetricOptions, mesh_distances, point_set_distances};
 pub use error::MetricsError;
 pub use faces::{DEFAULT_FACE_TOLERANCE, FaceMatch, FaceSummary, face_match, summarize_faces};
 pub use paired::{PairedDifference, paired_chamfer};
 pub use summary::{EvalRecord, EvalSummary, summarize};
+pub use topology::{Topology, TopologySummary, summarize_topology, topology};

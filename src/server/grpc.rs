@@ -160,6 +160,8 @@ impl GrpcService {
             face_beam: options.face_beam.map(|n| n as usize),
             candidates: options.candidates.map(|n| n as usize),
             fit_rounds: options.fit_rounds.map(|n| n as usize),
+            // Past u16 is past the limit too: saturate, and let the check refuse it.
+            weld_radius: options.weld_radius.map(|n| u16::try_from(n).unwrap_or(u16::MAX)),
             seed: options.seed,
             format: None,
         };

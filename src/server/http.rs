@@ -25,17 +25,15 @@ use super::error::{ApiError, ErrorBody};
 use super::events::{DoneEvent, FaceEvent, Line, ProgressEvent};
 use super::image_input::{GenerateOptions, ImageDefaults, read_upload};
 use super::input::{InputLimits, ParsedRequest, PointsBody, ReconstructOptions, parse_body};
-use super::{no_image_model, prepare};
+use super::{WholeMeshDefaults, no_image_model, prepare};
 
 #[derive(Clone)]
 pub struct AppState {
     pub engine: Engine,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
-    /// Candidates of a points request answered with a whole mesh that does not say.
-    pub whole_mesh_candidates: usize,
-    /// Fitting rounds of a points request answered with a whole mesh that does not say.
-    pub whole_mesh_fit_rounds: usize,
+    /// How a points request answered with a whole mesh ends when it does not say.
+    pub whole_mesh: WholeMeshDefaults,
     pub request_timeout: Duration,
     /// How images are prepared and sampled; `None` when the engine has no image model.
     pub image: Option<ImageDefaults>,
@@ -123,12 +121,13 @@ async fn reconstruct(
         let query = query_options::<ReconstructOptions>(&uri)?;
         let bytes = read_body(body, state.max_body_bytes).await?;
         let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
-        let (candidates, fit_rounds) = (state.whole_mesh_candidates, state.whole_mesh_fit_rounds);
+        let whole_mesh = state.whole_mesh;
         off_runtime(move || {
             let mut parsed: ParsedRequest = parse_body(&headers, query, &bytes, &limits)?;
             if streaming(&headers).is_none() {
-                parsed.decode.candidates.get_or_insert(candidates);
-                parsed.decode.fit_rounds.get_or_insert(fit_rounds);
+                parsed.decode.candidates.get_or_insert(whole_mesh.candidates);
+                parsed.decode.weld_radius.get_or_insert(whole_mesh.weld_radius);
+                parsed.decode.fit_rounds.get_or_insert(whole_mesh.fit_rounds);
             }
             let draws = parsed.decode.candidates.unwrap_or(1);
             let conditioning = prepare(&engine, &parsed.input, &limits, parsed.seed, draws)?;

@@ -6,7 +6,7 @@ use axum::http::header::CONTENT_TYPE;
 use serde::Deserialize;
 use utoipa::{IntoParams, ToSchema};
 
-use crate::candidates::MAX_CANDIDATES;
+use crate::candidates::{MAX_CANDIDATES, MAX_WELD_RADIUS};
 use crate::engine::DecodeOptions;
 use crate::mesh::{Format, MAX_FIT_ROUNDS, Mesh, ReadLimits, read_mesh};
 use crate::model::{DEFAULT_TEMPERATURE, MAX_FACE_BEAM, SamplingParams};
@@ -37,6 +37,12 @@ pub struct ReconstructOptions {
     /// Default: the server's setting for a whole mesh (see `/v1/info`), 0 for a stream. Above
     /// 0, every face arrives at the end.
     pub fit_rounds: Option<usize>,
+    /// Merge the corners of each candidate that lie within this many grid cells of each other
+    /// on every axis, before fitting (at most 4): closes the cracks between faces that should
+    /// share a corner; 0 keeps them as decoded. Default: the server's setting for a whole mesh
+    /// (1 unless configured, see `/v1/info`), 0 for a stream. Above 0, every face arrives at
+    /// the end.
+    pub weld_radius: Option<u16>,
     /// Seed of the point sampling and of the decoding when it samples.
     pub seed: Option<u64>,
     /// glb (default), obj, ply or stl.
@@ -62,6 +68,7 @@ pub struct PointsBody {
     pub face_beam: Option<usize>,
     pub candidates: Option<usize>,
     pub fit_rounds: Option<usize>,
+    pub weld_radius: Option<u16>,
     pub seed: Option<u64>,
     pub format: Option<String>,
 }
@@ -112,6 +119,14 @@ impl ReconstructOptions {
             )));
         }
         decode.fit_rounds = self.fit_rounds;
+        if let Some(n) = self.weld_radius
+            && n > MAX_WELD_RADIUS
+        {
+            return Err(ApiError::invalid(format!(
+                "weld_radius {n} must be at most {MAX_WELD_RADIUS}"
+            )));
+        }
+        decode.weld_radius = self.weld_radius;
         Ok(ParsedRequest { input, decode, seed, format })
     }
 }
@@ -258,6 +273,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         face_beam: b.face_beam,
         candidates: b.candidates,
         fit_rounds: b.fit_rounds,
+        weld_radius: b.weld_radius,
         seed: b.seed,
         format: b.format,
     };

@@ -54,10 +54,8 @@ pub struct ServeConfig {
     pub grpc_addr: SocketAddr,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
-    /// Candidates of a points request answered with a whole mesh that does not say.
-    pub whole_mesh_candidates: usize,
-    /// Fitting rounds of a points request answered with a whole mesh that does not say.
-    pub whole_mesh_fit_rounds: usize,
+    /// How a points request answered with a whole mesh ends when it does not say.
+    pub whole_mesh: WholeMeshDefaults,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
     pub request_timeout: Duration,
     /// After SIGTERM: how long accepted requests may still take.
@@ -65,6 +63,25 @@ pub struct ServeConfig {
     /// Shown by `/v1/info`.
     pub model_dir: PathBuf,
     pub image: ImageServeConfig,
+}
+
+/// How a points request answered with a whole mesh ends when it does not say: a stream's
+/// faces arrive as they are decoded (1 candidate, no weld, no fit) unless it asks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WholeMeshDefaults {
+    pub candidates: usize,
+    pub weld_radius: u16,
+    pub fit_rounds: usize,
+}
+
+impl Default for WholeMeshDefaults {
+    fn default() -> Self {
+        Self {
+            candidates: crate::candidates::DEFAULT_CANDIDATES,
+            weld_radius: crate::candidates::DEFAULT_WELD_RADIUS,
+            fit_rounds: crate::mesh::FitOptions::default().rounds,
+        }
+    }
 }
 
 /// Image requests' defaults and limits (used when the engine has an image model).
@@ -142,8 +159,9 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
         })),
         "engine": engine.config(),
         "defaults": {
-            "candidates": { "whole_mesh": cfg.whole_mesh_candidates, "stream": 1 },
-            "fit_rounds": { "whole_mesh": cfg.whole_mesh_fit_rounds, "stream": 0 },
+            "candidates": { "whole_mesh": cfg.whole_mesh.candidates, "stream": 1 },
+            "weld_radius": { "whole_mesh": cfg.whole_mesh.weld_radius, "stream": 0 },
+            "fit_rounds": { "whole_mesh": cfg.whole_mesh.fit_rounds, "stream": 0 },
             "reference_points": cfg.limits.reference_points,
             "temperature": DEFAULT_TEMPERATURE,
         },
@@ -192,8 +210,7 @@ pub async fn serve(
         engine: engine.clone(),
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
-        whole_mesh_candidates: cfg.whole_mesh_candidates,
-        whole_mesh_fit_rounds: cfg.whole_mesh_fit_rounds,
+        whole_mesh: cfg.whole_mesh,
         request_timeout: cfg.request_timeout,
         image: cfg.image.defaults(&engine),
         info: Arc::new(info_document(&engine, &cfg)),

@@ -10,6 +10,7 @@ mod per_coordinate;
 mod polygons;
 mod quantize;
 mod tokens;
+mod weld;
 
 pub use error::TokenizeError;
 pub use order::{
@@ -25,3 +26,4 @@ pub use quantize::{DEFAULT_LEVELS, MAX_LEVELS, MIN_LEVELS, Quantizer};
 pub use tokens::{
     Tokenized, detokenize, face_positions, is_canonical_sequence, tokenize, tokenize_mesh,
 };
+pub use weld::weld_near_corners;

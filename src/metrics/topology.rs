@@ -1,0 +1,166 @@
+//! How a mesh is put together, apart from where its surface lies: the share of edges on a
+//! boundary (used by one face) or non-manifold (used by three or more), and how many
+//! connected parts it has. The Chamfer distance cannot tell a closed box from a box-shaped
+//! heap of unconnected slivers; these can, and they are what a user sees first.
+
+use std::collections::HashMap;
+
+use crate::mesh::{DisjointSets, Mesh, position_key};
+
+/// The edges and parts of one mesh, its corners welded by exact position first: files split
+/// vertices along seams (normals, UVs), which is not a hole in the surface.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Topology {
+    /// Faces with three distinct corners once welded (others have no edges of their own).
+    pub faces: usize,
+    /// Distinct undirected edges of those faces.
+    pub edges: usize,
+    /// Edges used by exactly one face: holes and open borders.
+    pub boundary_edges: usize,
+    /// Edges used by three or more faces: fins, overlaps, repeated faces.
+    pub non_manifold_edges: usize,
+    /// Sets of faces connected through shared corners.
+    pub parts: usize,
+}
+
+impl Topology {
+    pub fn boundary_share(&self) -> f64 {
+        share(self.boundary_edges, self.edges)
+    }
+
+    pub fn non_manifold_share(&self) -> f64 {
+        share(self.non_manifold_edges, self.edges)
+    }
+}
+
+fn share(part: usize, whole: usize) -> f64 {
+    if whole == 0 { 0.0 } else { part as f64 / whole as f64 }
+}
+
+/// The topology of `mesh`; indices must be valid ([`Mesh::validate`]), faces with an index
+/// out of range are skipped.
+pub fn topology(mesh: &Mesh) -> Topology {
+    let welded = welded_faces(mesh);
+    let mut uses: HashMap<(u32, u32), usize> = HashMap::new();
+    let mut sets = DisjointSets::new(mesh.vertices.len());
+    for &[a, b, c] in &welded {
+        for (p, q) in [(a, b), (b, c), (c, a)] {
+            *uses.entry((p.min(q), p.max(q))).or_default() += 1;
+        }
+        sets.union(a as usize, b as usize);
+        sets.union(a as usize, c as usize);
+    }
+    let mut roots: Vec<usize> = welded.iter().filter_map(|f| sets.find(f[0] as usize)).collect();
+    roots.sort_unstable();
+    roots.dedup();
+    Topology {
+        faces: welded.len(),
+        edges: uses.len(),
+        boundary_edges: uses.values().filter(|&&n| n == 1).count(),
+        non_manifold_edges: uses.values().filter(|&&n| n > 2).count(),
+        parts: roots.len(),
+    }
+}
+
+/// Each valid face with its corners replaced by the first vertex at the same position,
+/// without the faces that collapse to an edge or a point.
+fn welded_faces(mesh: &Mesh) -> Vec<[u32; 3]> {
+    let mut first_at: HashMap<[u32; 3], u32> = HashMap::new();
+    let canonical: Vec<u32> = mesh
+        .vertices
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| *first_at.entry(position_key(p)).or_insert(i as u32))
+        .collect();
+    mesh.faces
+        .iter()
+        .filter_map(|f| {
+            let [a, b, c] = f.map(|i| canonical.get(i as usize).copied());
+            let face = [a?, b?, c?];
+            (face[0] != face[1] && face[1] != face[2] && face[2] != face[0]).then_some(face)
+        })
+        .collect()
+}
+
+/// Topology over a set of meshes: means of the per-mesh shares and of the parts, next to the
+/// ground truth's where it is known.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct TopologySummary {
+    pub meshes: usize,
+    /// `None` when there are no meshes.
+    pub boundary_share_mean: Option<f64>,
+    pub non_manifold_share_mean: Option<f64>,
+    pub parts_mean: Option<f64>,
+}
+
+pub fn summarize_topology(meshes: &[Topology]) -> TopologySummary {
+    let mean = |f: &dyn Fn(&Topology) -> f64| {
+        (!meshes.is_empty()).then(|| meshes.iter().map(f).sum::<f64>() / meshes.len() as f64)
+    };
+    TopologySummary {
+        meshes: meshes.len(),
+        boundary_share_mean: mean(&Topology::boundary_share),
+        non_manifold_share_mean: mean(&Topology::non_manifold_share),
+        parts_mean: mean(&|t| t.parts as f64),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+
+    #[test]
+    fn a_closed_box_has_no_boundary_and_one_part() {
+        let t = topology(&cuboid([1.0, 2.0, 3.0]));
+        assert_eq!(
+            t,
+            Topology { faces: 12, edges: 18, boundary_edges: 0, non_manifold_edges: 0, parts: 1 }
+        );
+    }
+
+    #[test]
+    fn a_box_with_split_vertices_is_still_closed() {
+        // Every face with its own three vertices, as a flat-shaded export writes it.
+        let closed = cuboid([1.0; 3]);
+        let vertices: Vec<[f32; 3]> =
+            closed.faces.iter().flat_map(|f| closed.triangle(f)).collect();
+        let faces = (0..12).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+        let soup = Mesh::new(vertices, faces);
+        assert_eq!(topology(&soup), topology(&cuboid([1.0; 3])));
+    }
+
+    #[test]
+    fn slivers_apart_are_all_boundary_and_each_a_part() {
+        let triangles = (0..5).map(|i| {
+            let x = 2.0 * i as f32;
+            [[x, 0.0, 0.0], [x + 1.0, 0.0, 0.0], [x, 1.0, 0.0]]
+        });
+        let t = topology(&Mesh::from_triangles(triangles));
+        assert_eq!((t.edges, t.boundary_edges, t.parts), (15, 15, 5));
+        assert_eq!(t.boundary_share(), 1.0);
+    }
+
+    #[test]
+    fn a_fin_is_non_manifold_and_collapsed_faces_do_not_count() {
+        let mut mesh = cuboid([1.0; 3]);
+        let [a, b, _] = mesh.faces[0];
+        mesh.vertices.push([5.0, 5.0, 5.0]);
+        let tip = mesh.vertices.len() as u32 - 1;
+        mesh.faces.push([a, b, tip]);
+        mesh.faces.push([a, a, tip]);
+        let t = topology(&mesh);
+        assert_eq!((t.faces, t.non_manifold_edges, t.boundary_edges, t.parts), (13, 1, 2, 1));
+        let s = summarize_topology(&[t, topology(&cuboid([1.0; 3]))]);
+        assert_eq!(s.parts_mean, Some(1.0));
+        assert!((s.non_manifold_share_mean.unwrap() - 0.5 / 20.0).abs() < 1e-12);
+        assert_eq!(summarize_topology(&[]).boundary_share_mean, None);
+    }
+
+    #[test]
+    fn a_point_cloud_has_nothing() {
+        let t = topology(&Mesh::new(vec![[0.0; 3]; 4], vec![]));
+        assert_eq!((t.faces, t.edges, t.parts), (0, 0, 0));
+        assert_eq!(t.boundary_share(), 0.0);
+    }
+}
