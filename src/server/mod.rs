@@ -6,6 +6,7 @@ mod grpc;
 mod http;
 mod image_input;
 mod input;
+mod ui;
 
 /// The gRPC API's messages, client and server (`proto/meshstream/v1/meshstream.proto`).
 pub mod proto {
@@ -65,6 +66,8 @@ pub struct ServeConfig {
     /// Shown by `/v1/info`.
     pub model_dir: PathBuf,
     pub image: ImageServeConfig,
+    /// Serve the viewer page at `GET /`.
+    pub ui: bool,
 }
 
 /// Image requests' defaults and limits (used when the engine has an image model).
@@ -234,7 +237,7 @@ pub async fn serve(
     let closed = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|closing| *closing).await;
     };
-    let http_server = axum::serve(listeners.http, http::router(state))
+    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui))
         .with_graceful_shutdown(closed(closing_rx.clone()));
     let grpc_server = tonic::transport::Server::builder()
         .add_service(health_service)
