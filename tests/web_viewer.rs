@@ -83,10 +83,14 @@ fn the_page_streams_faces_cancels_downloads_and_shows_errors_in_a_browser() {
         .unwrap();
     assert!(status.success(), "the browser test failed; see {}", artifacts.display());
 
-    // The GLB the page made holds the faces the server streamed.
+    // The files the page made hold the faces the server streamed.
     let seen: serde_json::Value =
         serde_json::from_slice(&std::fs::read(artifacts.join("result.json")).unwrap()).unwrap();
-    let glb = std::fs::read(artifacts.join("result.glb")).unwrap();
-    let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
-    assert_eq!(mesh.faces.len() as u64, seen["done_faces"].as_u64().unwrap(), "{seen}");
+    for format in [Format::Gltf, Format::Obj, Format::Ply, Format::Stl] {
+        let file = artifacts.join(format!("result.{}", format.extension()));
+        let bytes = std::fs::read(&file).unwrap();
+        let mesh = read_mesh(&bytes, format, &ReadLimits::default())
+            .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        assert_eq!(mesh.faces.len() as u64, seen["done_faces"].as_u64().unwrap(), "{seen}");
+    }
 }

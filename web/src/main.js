@@ -32,6 +32,8 @@ function showError(text) {
 async function choose(file) {
   if (running) running.abort();
   input = { file, ...describe(file) };
+  // The picker shows its own last pick: clear it when the input came from elsewhere.
+  if ($('file').files[0] !== file) $('file').value = '';
   $('input-name').textContent = `${file.name} (${(file.size / 1024).toFixed(1)} KB)`;
   const thumbnail = $('thumbnail');
   URL.revokeObjectURL(thumbnail.src);

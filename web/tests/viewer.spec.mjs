@@ -114,15 +114,32 @@ try {
   await shoot('wireframe');
   await page.uncheck('#wireframe');
 
-  step('download the result as GLB');
-  const [download] = await Promise.all([page.waitForEvent('download'), page.click('[data-format=glb]')]);
-  result.glb = `${artifacts}/result.glb`;
-  await download.saveAs(result.glb);
-  const glb = await readFile(result.glb);
+  step('download the result as GLB, OBJ, PLY and STL');
+  for (const format of ['glb', 'obj', 'ply', 'stl']) {
+    const [download] = await Promise.all([page.waitForEvent('download'), page.click(`[data-format=${format}]`)]);
+    assert.equal(download.suggestedFilename(), `mug-points-meshstream.${format}`);
+    await download.saveAs(`${artifacts}/result.${format}`);
+  }
+  const glb = await readFile(`${artifacts}/result.glb`);
   assert.equal(glb.toString('latin1', 0, 4), 'glTF');
   assert.equal(glb.readUInt32LE(4), 2);
   assert.equal(glb.readUInt32LE(8), glb.length);
-  assert.equal(download.suggestedFilename(), 'mug-points-meshstream.glb');
+
+  step('drop a mesh on the page');
+  const mesh = (await readFile(new URL('pine-tree.ply', examples))).toString('base64');
+  await page.fill('#max_faces', '150');
+  await page.evaluate((base64) => {
+    const bytes = Uint8Array.from(atob(base64), (c) => c.charCodeAt(0));
+    const transfer = new DataTransfer();
+    transfer.items.add(new File([bytes], 'dropped-tree.ply'));
+    document.getElementById('drop').dispatchEvent(new DragEvent('drop', { dataTransfer: transfer, bubbles: true }));
+  }, mesh);
+  await page.waitForFunction(() => document.body.dataset.state !== 'running'
+    && document.getElementById('input-name').textContent.startsWith('dropped-tree'), null, { timeout: 120_000 });
+  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  result.dropped_mesh_faces = await faceCount();
+  assert(result.dropped_mesh_faces > 0);
+  await shoot('dropped-mesh');
 
   step('an invalid file shows the API\'s message');
   const broken = Buffer.from('ply\nformat nonsense\nend_header\n');
