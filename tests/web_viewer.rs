@@ -66,7 +66,7 @@ fn the_page_streams_faces_cancels_downloads_and_shows_errors_in_a_browser() {
             panic!("MESHSTREAM_REQUIRE_BROWSER=1 but {why}")
         }
         Err(why) => {
-            eprintln!("skipped: the browser test needs {why}");
+            eprintln!("skipped: the browser test cannot run here: {why}");
             return;
         }
     };
