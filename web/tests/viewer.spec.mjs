@@ -43,6 +43,8 @@ try {
       pageErrors.push(message.text());
     }
   });
+  // CI runs this beside the other tests on a few cores: be patient.
+  page.setDefaultTimeout(120_000);
   const shoot = (name) => page.screenshot({ path: `${artifacts}/${name}.png` });
   const state = () => page.locator('body').getAttribute('data-state');
   const faceCount = async () => Number(await page.locator('#face-count').textContent());
@@ -71,7 +73,7 @@ try {
   result.streaming_state = await state();
   result.streaming_faces = await faceCount();
   await shoot('streaming');
-  await page.waitForFunction(() => document.body.dataset.state !== 'running', null, { timeout: 120_000 });
+  await page.waitForFunction(() => document.body.dataset.state !== 'running');
   assert.equal(await state(), 'done', await page.locator('#error').textContent());
   // The page's done line, and the same request sent here: decoding is seeded, so it streams the
   // same faces (the page's own response body is gone: the page read it as a stream).
@@ -135,7 +137,7 @@ try {
     document.getElementById('drop').dispatchEvent(new DragEvent('drop', { dataTransfer: transfer, bubbles: true }));
   }, mesh);
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
-    && document.getElementById('input-name').textContent.startsWith('dropped-tree'), null, { timeout: 120_000 });
+    && document.getElementById('input-name').textContent.startsWith('dropped-tree'));
   assert.equal(await state(), 'done', await page.locator('#error').textContent());
   result.dropped_mesh_faces = await faceCount();
   assert(result.dropped_mesh_faces > 0);
@@ -161,7 +163,7 @@ try {
   await page.fill('#max_faces', '200');
   await page.click('[data-example="chest.png"]');
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
-    && document.getElementById('input-name').textContent.startsWith('chest'), null, { timeout: 120_000 });
+    && document.getElementById('input-name').textContent.startsWith('chest'));
   assert.equal(await state(), 'done', await page.locator('#error').textContent());
   result.image_progress = await page.locator('#progress').textContent();
   assert.match(result.image_progress, /diffusion step 8 of 8/);
@@ -173,7 +175,7 @@ try {
   assert.equal(await running(), 0);
   await page.fill('#steps', await page.locator('#steps').getAttribute('max'));
   await page.click('#run');
-  await page.waitForFunction(() => /diffusion step [3-9]/.test(document.getElementById('progress').textContent)
+  await page.waitForFunction(() => Number(document.getElementById('progress').textContent.match(/diffusion step (\d+)/)?.[1]) >= 3
     || document.body.dataset.state !== 'running');
   assert.equal(await state(), 'running', 'the request finished before it could be cancelled');
   result.running_before_cancel = await running();
