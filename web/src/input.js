@@ -6,6 +6,7 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
 import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 import { STLLoader } from 'three/addons/loaders/STLLoader.js';
+import { MeshSurfaceSampler } from 'three/addons/math/MeshSurfaceSampler.js';
 
 const IMAGE_TYPES = { png: 'image/png', jpg: 'image/jpeg', jpeg: 'image/jpeg', webp: 'image/webp' };
 const MESH_TYPES = {
@@ -37,42 +38,65 @@ export function describe(file) {
   };
 }
 
+/** Points drawn on each mesh's surface, as the server samples a mesh it is sent. */
+const SAMPLES_PER_MESH = 4096;
+
 /**
- * The vertex positions of a mesh or point cloud file (a flat Float32Array in the file's
- * coordinates, as the server answers in them), or null when the page cannot read it: the
- * server still gets the file and gives its own verdict.
+ * The input's points in the file's coordinates (the server answers in them): `positions`, a
+ * flat Float32Array, a point cloud's own or points drawn on a mesh's surface (`sampled`). Null
+ * when the page cannot read the file: the server still gets it and gives its own verdict.
  */
 export async function previewPoints(bytes, extension) {
   try {
-    switch (extension) {
-      case 'ply':
-        return new PLYLoader().parse(bytes).getAttribute('position').array;
-      case 'stl':
-        return new STLLoader().parse(bytes).getAttribute('position').array;
-      case 'obj':
-        return positionsOf(new OBJLoader().parse(new TextDecoder().decode(bytes)));
-      case 'glb':
-        return positionsOf((await new GLTFLoader().parseAsync(bytes, '')).scene);
-      default:
-        return null;
-    }
+    const root = await load(bytes, extension);
+    return root ? pointsOf(root) : null;
   } catch {
     return null;
   }
 }
 
-/** Every mesh's positions in an object tree, in world coordinates. */
-function positionsOf(root) {
+async function load(bytes, extension) {
+  switch (extension) {
+    case 'ply': {
+      const geometry = new PLYLoader().parse(bytes);
+      return geometry.index ? new THREE.Mesh(geometry) : new THREE.Points(geometry);
+    }
+    case 'stl':
+      return new THREE.Mesh(new STLLoader().parse(bytes));
+    case 'obj':
+      return new OBJLoader().parse(new TextDecoder().decode(bytes));
+    case 'glb':
+      return (await new GLTFLoader().parseAsync(bytes, '')).scene;
+    default:
+      return null;
+  }
+}
+
+/** Every mesh's surface points and every point cloud's points, in world coordinates. */
+function pointsOf(root) {
   root.updateMatrixWorld(true);
   const all = [];
   const v = new THREE.Vector3();
+  let sampled = false;
   root.traverse((node) => {
     const position = node.geometry?.getAttribute('position');
     if (!position) return;
-    for (let i = 0; i < position.count; i++) {
-      v.fromBufferAttribute(position, i).applyMatrix4(node.matrixWorld);
-      all.push(v.x, v.y, v.z);
+    if (node.isMesh) {
+      sampled = true;
+      const sampler = new MeshSurfaceSampler(node).build();
+      for (let i = 0; i < SAMPLES_PER_MESH; i++) {
+        sampler.sample(v);
+        v.applyMatrix4(node.matrixWorld);
+        all.push(v.x, v.y, v.z);
+      }
+    } else {
+      for (let i = 0; i < position.count; i++) {
+        v.fromBufferAttribute(position, i).applyMatrix4(node.matrixWorld);
+        all.push(v.x, v.y, v.z);
+      }
     }
   });
-  return all.length ? new Float32Array(all) : null;
+  return all.every(Number.isFinite) && all.length
+    ? { positions: new Float32Array(all), sampled }
+    : null;
 }

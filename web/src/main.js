@@ -42,7 +42,14 @@ async function choose(file) {
     thumbnail.src = URL.createObjectURL(file);
     view.showInput(null);
   } else {
-    view.showInput(await previewPoints(await file.arrayBuffer(), input.extension));
+    const preview = await previewPoints(await file.arrayBuffer(), input.extension);
+    view.showInput(preview?.positions);
+    if (preview) {
+      const count = preview.positions.length / 3;
+      $('input-name').textContent += preview.sampled
+        ? `: ${count} points drawn on its surface`
+        : `: ${count} points`;
+    }
   }
   await run();
 }

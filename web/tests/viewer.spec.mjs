@@ -66,6 +66,7 @@ try {
   await page.fill('#max_faces', '400');
   const streamed = page.waitForResponse((r) => r.url().includes('/reconstruct'));
   await page.setInputFiles('#file', new URL('mug-points.ply', examples).pathname);
+  await page.waitForFunction(() => document.getElementById('input-name').textContent.endsWith('2048 points'));
   assert.equal((await streamed).headers()['content-type'], 'application/x-ndjson');
   // A screenshot while the faces stream in (if the stream outruns the poll, at its end).
   await page.waitForFunction(() => Number(document.getElementById('face-count').textContent) >= 60
@@ -139,6 +140,7 @@ try {
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
     && document.getElementById('input-name').textContent.startsWith('dropped-tree'));
   assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  assert.match(await page.locator('#input-name').textContent(), /4096 points drawn on its surface/);
   result.dropped_mesh_faces = await faceCount();
   assert(result.dropped_mesh_faces > 0);
   await shoot('dropped-mesh');
