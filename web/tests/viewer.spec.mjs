@@ -71,9 +71,10 @@ try {
   // A screenshot while the faces stream in (if the stream outruns the poll, at its end).
   await page.waitForFunction(() => Number(document.getElementById('face-count').textContent) >= 60
     || document.body.dataset.state !== 'running');
+  await shoot('streaming');
+  // Still running after the shot: the shot shows faces streaming in, not the end.
   result.streaming_state = await state();
   result.streaming_faces = await faceCount();
-  await shoot('streaming');
   await page.waitForFunction(() => document.body.dataset.state !== 'running');
   assert.equal(await state(), 'done', await page.locator('#error').textContent());
   // The page's done line, and the same request sent here: decoding is seeded, so it streams the
