@@ -81,6 +81,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         shutdown_grace: Duration::from_secs(5),
         image: ImageServeConfig::default(),
         model_dir: args.model.clone(),
+        ui: false,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {

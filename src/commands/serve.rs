@@ -122,6 +122,9 @@ pub struct ServeArgs {
     /// Largest width and height of an uploaded image, in pixels.
     #[arg(long, env = "MESHSTREAM_MAX_IMAGE_SIDE", default_value_t = ImageServeConfig::default().max_side)]
     max_image_side: u32,
+    /// Do not serve the viewer page at `GET /` (the API only).
+    #[arg(long, env = "MESHSTREAM_NO_UI", value_parser = clap::builder::BoolishValueParser::new())]
+    no_ui: bool,
 }
 
 fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
@@ -187,6 +190,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             guidance: args.guidance,
             max_side: args.max_image_side,
         },
+        ui: !args.no_ui,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {

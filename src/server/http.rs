@@ -53,8 +53,11 @@ pub struct AppState {
 )]
 struct ApiDoc;
 
-pub fn router(state: AppState) -> Router {
+/// The API's routes, and the viewer page's when `ui` is set.
+pub fn router(state: AppState, ui: bool) -> Router {
+    let page = if ui { super::ui::routes() } else { Router::new() };
     Router::new()
+        .merge(page)
         .route("/reconstruct", post(reconstruct))
         .route("/generate", post(generate))
         .route("/healthz", get(healthz))

@@ -6,6 +6,7 @@ mod grpc;
 mod http;
 mod image_input;
 mod input;
+mod ui;
 
 /// The gRPC API's messages, client and server (`proto/meshstream/v1/meshstream.proto`).
 pub mod proto {
@@ -63,6 +64,8 @@ pub struct ServeConfig {
     /// Shown by `/v1/info`.
     pub model_dir: PathBuf,
     pub image: ImageServeConfig,
+    /// Serve the viewer page at `GET /`.
+    pub ui: bool,
 }
 
 /// How a points request answered with a whole mesh ends when it does not say: a stream's
@@ -251,7 +254,7 @@ pub async fn serve(
     let closed = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|closing| *closing).await;
     };
-    let http_server = axum::serve(listeners.http, http::router(state))
+    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui))
         .with_graceful_shutdown(closed(closing_rx.clone()));
     let grpc_server = tonic::transport::Server::builder()
         .add_service(health_service)

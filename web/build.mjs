@@ -1,0 +1,37 @@
+// Bundles src/main.js and three.js, minified by esbuild, into dist/app.js, which the binary
+// embeds (with src/index.html and src/style.css as they are). `--check` builds in memory and
+// fails when dist/ differs, so that the committed bundle is what the locked packages make.
+
+import { readFile, writeFile, mkdir } from 'node:fs/promises';
+import { build } from 'esbuild';
+
+const here = new URL('.', import.meta.url);
+const check = process.argv.includes('--check');
+
+const bundle = await build({
+  entryPoints: [new URL('src/main.js', here).pathname],
+  bundle: true,
+  format: 'esm',
+  minify: true,
+  target: 'es2022',
+  legalComments: 'eof',
+  write: false,
+});
+const outputs = { 'app.js': bundle.outputFiles[0].contents };
+
+let stale = [];
+for (const [name, contents] of Object.entries(outputs)) {
+  const path = new URL(`dist/${name}`, here);
+  if (check) {
+    const committed = await readFile(path).catch(() => Buffer.alloc(0));
+    if (!Buffer.from(contents).equals(committed)) stale.push(name);
+  } else {
+    await mkdir(new URL('dist/', here), { recursive: true });
+    await writeFile(path, contents);
+    console.log(`dist/${name}: ${contents.length} bytes`);
+  }
+}
+if (stale.length) {
+  console.error(`web/dist is not what \`npm run build\` makes: ${stale.join(', ')} differ`);
+  process.exit(1);
+}

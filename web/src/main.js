@@ -1,0 +1,191 @@
+// The page: pick or drop an input, stream its faces into the view, cancel, download.
+
+import { ApiError, serverInfo, streamRequest } from './api.js';
+import { exportFaces, save } from './download.js';
+import { describe, previewPoints } from './input.js';
+import { View } from './view.js';
+
+const $ = (id) => document.getElementById(id);
+const view = new View($('canvas'));
+const OPTIONS = {
+  points: ['max_faces', 'temperature', 'seed', 'candidates'],
+  image: ['max_faces', 'temperature', 'seed', 'steps', 'guidance'],
+};
+
+let input = null; // { file, kind, path, contentType, extension }
+let running = null; // the AbortController of the request in flight
+
+function setState(state) {
+  document.body.dataset.state = state;
+  $('run').disabled = !input || state === 'running';
+  $('cancel').disabled = state !== 'running';
+  for (const button of document.querySelectorAll('#downloads button')) {
+    button.disabled = state === 'running' || view.faceCount === 0;
+  }
+}
+
+function showError(text) {
+  $('error').textContent = text;
+  $('error').hidden = !text;
+}
+
+async function choose(file) {
+  if (running) running.abort();
+  input = { file, ...describe(file) };
+  // The picker shows its own last pick: clear it when the input came from elsewhere.
+  if ($('file').files[0] !== file) $('file').value = '';
+  $('input-name').textContent = `${file.name} (${(file.size / 1024).toFixed(1)} KB)`;
+  const thumbnail = $('thumbnail');
+  URL.revokeObjectURL(thumbnail.src);
+  thumbnail.hidden = input.kind !== 'image';
+  if (input.kind === 'image') {
+    thumbnail.src = URL.createObjectURL(file);
+    view.showInput(null);
+  } else {
+    const preview = await previewPoints(await file.arrayBuffer(), input.extension);
+    view.showInput(preview?.positions);
+    if (preview) {
+      const count = preview.positions.length / 3;
+      $('input-name').textContent += preview.sampled
+        ? `: ${count} points drawn on its surface`
+        : `: ${count} points`;
+    }
+  }
+  await run();
+}
+
+async function run() {
+  if (running) running.abort();
+  const controller = new AbortController();
+  running = controller;
+  showError('');
+  view.clearFaces(Number($('max_faces').value) || Number($('max_faces').max) || 1024);
+  $('face-count').textContent = '0';
+  setState('running');
+  const options = Object.fromEntries(OPTIONS[input.kind].map((name) => [name, $(name).value]));
+  const started = performance.now();
+  let firstFace = null;
+  let diffusion = '';
+  const progress = () => {
+    const parts = [diffusion];
+    if (firstFace !== null) {
+      const seconds = (performance.now() - firstFace) / 1000;
+      const rate = seconds > 0 ? (view.faceCount - 1) / seconds : 0;
+      parts.push(
+        `${view.faceCount} faces`,
+        `${rate.toFixed(1)} faces/s`,
+        `first face after ${((firstFace - started) / 1000).toFixed(2)} s`,
+      );
+    } else if (!diffusion) {
+      parts.push('waiting for the first face…');
+    }
+    $('progress').textContent = parts.filter(Boolean).join(' · ');
+  };
+  progress();
+  try {
+    const done = await streamRequest({
+      path: input.path,
+      body: input.file,
+      contentType: input.contentType,
+      options,
+      signal: controller.signal,
+      onEvent(event) {
+        if (event.type === 'progress') {
+          diffusion = `diffusion step ${event.step} of ${event.steps}`;
+        } else if (event.type === 'face') {
+          firstFace ??= performance.now();
+          view.addFace(event.vertices);
+          $('face-count').textContent = String(view.faceCount);
+        }
+        progress();
+      },
+    });
+    progress();
+    const total = (done.total_ms / 1000).toFixed(2);
+    $('progress').textContent += `\nDone: ${done.faces} faces (${done.finish_reason}) in ${total} s on the server.`;
+    setState('done');
+  } catch (error) {
+    if (controller.signal.aborted) {
+      if (running === controller) {
+        $('progress').textContent += '\nCancelled.';
+        setState('cancelled');
+      }
+      return;
+    }
+    $('progress').textContent = '';
+    showError(error instanceof ApiError ? error.toString() : `The request failed: ${error.message}`);
+    setState('error');
+  } finally {
+    if (running === controller) running = null;
+  }
+}
+
+async function loadExample(name) {
+  try {
+    const response = await fetch(`/ui/examples/${name}`);
+    if (!response.ok) throw new Error(`${response.status} ${response.statusText}`);
+    const blob = await response.blob();
+    await choose(new File([blob], name, { type: blob.type }));
+  } catch (error) {
+    showError(`Cannot load the example ${name}: ${error.message}`);
+  }
+}
+
+async function showServerInfo() {
+  try {
+    const info = await serverInfo();
+    const { limits, defaults } = info;
+    const image = info.image_model;
+    const set = (id, placeholder, max) => {
+      $(id).placeholder = placeholder;
+      if (max !== undefined) $(id).max = max;
+    };
+    set('max_faces', limits.max_faces, limits.max_faces);
+    // f32 defaults come as their nearest f64 (1.2000000476837158): shown as written.
+    set('temperature', Number(defaults.temperature.toPrecision(6)));
+    set('seed', 0);
+    set('candidates', defaults.candidates.stream);
+    if (image) {
+      set('steps', image.default_steps, info.engine.max_diffusion_steps);
+      set('guidance', Number(image.default_guidance.toPrecision(6)));
+    }
+    const mb = (limits.max_body_bytes / 2 ** 20).toFixed(0);
+    $('server').textContent =
+      `meshstream ${info.version}: up to ${limits.max_faces} faces, ${limits.max_points} points, ` +
+      `${mb} MiB a file; ${image ? 'images accepted' : 'no image model (images are refused)'}.`;
+  } catch (error) {
+    $('server').textContent = `The server did not say its limits: ${error}`;
+  }
+}
+
+$('file').addEventListener('change', () => {
+  if ($('file').files[0]) choose($('file').files[0]);
+});
+const drop = $('drop');
+document.addEventListener('dragover', (event) => {
+  event.preventDefault();
+  drop.classList.add('over');
+});
+document.addEventListener('dragleave', () => drop.classList.remove('over'));
+document.addEventListener('drop', (event) => {
+  event.preventDefault();
+  drop.classList.remove('over');
+  const file = event.dataTransfer.files[0];
+  if (file) choose(file);
+});
+for (const button of document.querySelectorAll('[data-example]')) {
+  button.addEventListener('click', () => loadExample(button.dataset.example));
+}
+$('run').addEventListener('click', () => run());
+$('cancel').addEventListener('click', () => running?.abort());
+$('wireframe').addEventListener('change', () => view.setWireframe($('wireframe').checked));
+$('show-input').addEventListener('change', () => view.setInputVisible($('show-input').checked));
+for (const button of document.querySelectorAll('[data-format]')) {
+  button.addEventListener('click', async () => {
+    const format = button.dataset.format;
+    const stem = input.file.name.replace(/\.[^.]*$/, '');
+    save(await exportFaces(view.facePositions(), format), `${stem}-meshstream.${format}`);
+  });
+}
+showServerInfo();
+setState('idle');

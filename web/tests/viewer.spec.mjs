@@ -1,0 +1,201 @@
+// The viewer in a real browser (Debian's chromium, driven by playwright-core) against a running
+// `meshstream serve`. Run by tests/web_viewer.rs, which starts the server; by hand:
+//   MESHSTREAM_URL=http://127.0.0.1:8080 ARTIFACTS=/tmp/viewer node web/tests/viewer.spec.mjs
+// It writes screenshots, the downloaded GLB and result.json (what it saw) to ARTIFACTS.
+
+import assert from 'node:assert/strict';
+import { mkdir, readFile, writeFile } from 'node:fs/promises';
+import { chromium } from 'playwright-core';
+
+const base = process.env.MESHSTREAM_URL;
+const artifacts = process.env.ARTIFACTS;
+const executablePath = process.env.CHROMIUM || '/usr/bin/chromium';
+assert(base && artifacts, 'set MESHSTREAM_URL and ARTIFACTS');
+await mkdir(artifacts, { recursive: true });
+const examples = new URL('../examples/', import.meta.url);
+const step = (text) => console.log(`viewer: ${text}`);
+
+const browser = await chromium.launch({
+  executablePath,
+  headless: true,
+  args: [
+    '--no-sandbox',
+    '--disable-gpu',
+    // WebGL without a GPU: ANGLE on SwiftShader, which chromium no longer falls back to alone.
+    '--use-angle=swiftshader',
+    '--enable-unsafe-swiftshader',
+    '--disable-quic',
+    '--no-first-run',
+    '--disable-background-networking',
+    '--disable-component-update',
+    '--disable-sync',
+  ],
+  // playwright gives every launch a fresh, empty profile (its own --user-data-dir).
+});
+const result = {};
+try {
+  const page = await browser.newPage({ viewport: { width: 1000, height: 620 }, acceptDownloads: true });
+  const pageErrors = [];
+  page.on('pageerror', (error) => pageErrors.push(error.message));
+  page.on('console', (message) => {
+    // Chromium logs every refused request (the 400 below is one) as an error: not the page's.
+    if (message.type() === 'error' && !message.text().startsWith('Failed to load resource')) {
+      pageErrors.push(message.text());
+    }
+  });
+  // CI runs this beside the other tests on a few cores: be patient.
+  page.setDefaultTimeout(120_000);
+  const shoot = (name) => page.screenshot({ path: `${artifacts}/${name}.png` });
+  const state = () => page.locator('body').getAttribute('data-state');
+  const faceCount = async () => Number(await page.locator('#face-count').textContent());
+  const running = async () => {
+    const text = await (await fetch(`${base}/metrics`)).text();
+    const line = text.split('\n').find((l) => l.startsWith('meshstream_running_sequences '));
+    assert(line, `no running_sequences gauge in /metrics:\n${text}`);
+    return Number(line.split(' ')[1]);
+  };
+
+  step('open the page');
+  await page.goto(base);
+  await page.waitForFunction(() => !document.getElementById('server').textContent.startsWith('Asking'));
+  const serverLine = await page.locator('#server').textContent();
+  assert.match(serverLine, /up to \d+ faces/, serverLine);
+  assert.equal(await page.locator('#max_faces').getAttribute('placeholder'), String(JSON.parse(await (await fetch(`${base}/v1/info`)).text()).limits.max_faces));
+
+  step('upload a point cloud and watch its faces arrive');
+  await page.fill('#max_faces', '400');
+  const streamed = page.waitForResponse((r) => r.url().includes('/reconstruct'));
+  await page.setInputFiles('#file', new URL('mug-points.ply', examples).pathname);
+  await page.waitForFunction(() => document.getElementById('input-name').textContent.endsWith('2048 points'));
+  assert.equal((await streamed).headers()['content-type'], 'application/x-ndjson');
+  // A screenshot while the faces stream in (if the stream outruns the poll, at its end).
+  await page.waitForFunction(() => Number(document.getElementById('face-count').textContent) >= 60
+    || document.body.dataset.state !== 'running');
+  await shoot('streaming');
+  // Still running after the shot: the shot shows faces streaming in, not the end.
+  result.streaming_state = await state();
+  result.streaming_faces = await faceCount();
+  await page.waitForFunction(() => document.body.dataset.state !== 'running');
+  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  // The page's done line, and the same request sent here: decoding is seeded, so it streams the
+  // same faces (the page's own response body is gone: the page read it as a stream).
+  const pageDone = (await page.locator('#progress').textContent()).match(/Done: (\d+) faces/);
+  assert(pageDone, 'no done line on the page');
+  const direct = await fetch(`${base}/reconstruct?max_faces=400`, {
+    method: 'POST',
+    headers: { 'content-type': 'application/ply', accept: 'application/x-ndjson' },
+    body: await readFile(new URL('mug-points.ply', examples)),
+  });
+  const lines = (await direct.text()).trim().split('\n').map((l) => JSON.parse(l));
+  const done = lines.at(-1);
+  assert.equal(done.type, 'done');
+  assert.equal(lines.filter((l) => l.type === 'face').length, done.faces);
+  result.done_faces = done.faces;
+  result.page_faces = await faceCount();
+  assert.equal(result.page_faces, done.faces, 'the page counts the faces the done event reports');
+  assert.equal(Number(pageDone[1]), done.faces);
+  assert.match(await page.locator('#progress').textContent(), /faces\/s · first face after/);
+  await shoot('done');
+
+  step('the canvas shows the faces');
+  result.lit_fraction = await page.evaluate(() => {
+    const canvas = document.getElementById('canvas');
+    const copy = Object.assign(document.createElement('canvas'), { width: canvas.width, height: canvas.height });
+    const context = copy.getContext('2d');
+    context.drawImage(canvas, 0, 0);
+    const { data } = context.getImageData(0, 0, copy.width, copy.height);
+    const background = [0x20, 0x24, 0x2b];
+    let differing = 0;
+    for (let i = 0; i < data.length; i += 4) {
+      const d = Math.abs(data[i] - background[0]) + Math.abs(data[i + 1] - background[1])
+        + Math.abs(data[i + 2] - background[2]);
+      if (d > 30) differing++;
+    }
+    return differing / (data.length / 4);
+  });
+  assert(result.lit_fraction > 0.01, `the canvas is blank: ${result.lit_fraction} of its pixels differ`);
+  await page.check('#wireframe');
+  await shoot('wireframe');
+  await page.uncheck('#wireframe');
+
+  step('download the result as GLB, OBJ, PLY and STL');
+  for (const format of ['glb', 'obj', 'ply', 'stl']) {
+    const [download] = await Promise.all([page.waitForEvent('download'), page.click(`[data-format=${format}]`)]);
+    assert.equal(download.suggestedFilename(), `mug-points-meshstream.${format}`);
+    await download.saveAs(`${artifacts}/result.${format}`);
+  }
+  const glb = await readFile(`${artifacts}/result.glb`);
+  assert.equal(glb.toString('latin1', 0, 4), 'glTF');
+  assert.equal(glb.readUInt32LE(4), 2);
+  assert.equal(glb.readUInt32LE(8), glb.length);
+
+  step('drop a mesh on the page');
+  const mesh = (await readFile(new URL('pine-tree.ply', examples))).toString('base64');
+  await page.fill('#max_faces', '150');
+  await page.evaluate((base64) => {
+    const bytes = Uint8Array.from(atob(base64), (c) => c.charCodeAt(0));
+    const transfer = new DataTransfer();
+    transfer.items.add(new File([bytes], 'dropped-tree.ply'));
+    document.getElementById('drop').dispatchEvent(new DragEvent('drop', { dataTransfer: transfer, bubbles: true }));
+  }, mesh);
+  // The input line gets its points once the page has read the file, just before it sends it.
+  await page.waitForFunction(() => document.body.dataset.state !== 'running'
+    && document.getElementById('input-name').textContent.startsWith('dropped-tree.ply (2.0 KB): 4096 points drawn on its surface'));
+  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  result.dropped_mesh_faces = await faceCount();
+  assert(result.dropped_mesh_faces > 0);
+  await shoot('dropped-mesh');
+
+  step('an invalid file shows the API\'s message');
+  const broken = Buffer.from('ply\nformat nonsense\nend_header\n');
+  const refused = await fetch(`${base}/reconstruct`, {
+    method: 'POST',
+    headers: { 'content-type': 'application/ply' },
+    body: broken,
+  });
+  const { error } = await refused.json();
+  assert.equal(refused.status, 400);
+  await page.setInputFiles('#file', { name: 'broken.ply', mimeType: 'application/octet-stream', buffer: broken });
+  await page.waitForFunction(() => document.body.dataset.state === 'error');
+  result.error_text = await page.locator('#error').textContent();
+  assert.equal(result.error_text, `400 ${error.code}: ${error.message}`);
+  await shoot('error');
+
+  step('an image: diffusion progress, then faces');
+  await page.fill('#steps', '8');
+  await page.fill('#max_faces', '200');
+  await page.click('[data-example="chest.png"]');
+  await page.waitForFunction(() => document.body.dataset.state !== 'running'
+    && document.getElementById('input-name').textContent.startsWith('chest'));
+  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  result.image_progress = await page.locator('#progress').textContent();
+  assert.match(result.image_progress, /diffusion step 8 of 8/);
+  await shoot('image');
+
+  // Cancelled in the diffusion stage, which is long on a CPU at the most steps the server
+  // allows (a point cloud's faces can all arrive before a click lands).
+  step('cancel frees the server\'s slot');
+  assert.equal(await running(), 0);
+  await page.fill('#steps', await page.locator('#steps').getAttribute('max'));
+  await page.click('#run');
+  await page.waitForFunction(() => Number(document.getElementById('progress').textContent.match(/diffusion step (\d+)/)?.[1]) >= 3
+    || document.body.dataset.state !== 'running');
+  assert.equal(await state(), 'running', 'the request finished before it could be cancelled');
+  result.running_before_cancel = await running();
+  assert.equal(result.running_before_cancel, 1);
+  await page.click('#cancel');
+  await page.waitForFunction(() => document.body.dataset.state === 'cancelled');
+  const t0 = Date.now();
+  while ((await running()) !== 0) {
+    assert(Date.now() - t0 < 5000, 'the slot is still taken 5 s after cancelling');
+    await new Promise((r) => setTimeout(r, 20));
+  }
+  result.slot_freed_ms = Date.now() - t0;
+  await shoot('cancelled');
+
+  assert.deepEqual(pageErrors, [], 'the page logged errors');
+} finally {
+  await writeFile(`${artifacts}/result.json`, JSON.stringify(result, null, 2));
+  await browser.close();
+}
+step('all checks passed');
