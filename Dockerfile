@@ -12,6 +12,9 @@
 ARG RUST_VERSION=1.95
 
 FROM rust:${RUST_VERSION}-slim-bookworm AS builder
+# meshopt compiles meshoptimizer's C++ (the slim image has gcc only).
+RUN apt-get update && apt-get install -y --no-install-recommends g++ \
+    && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 # Dependencies first, against stub sources: this layer is rebuilt only when Cargo.toml,
 # Cargo.lock, build.rs or the proto change, not on every source change.
