@@ -188,7 +188,15 @@ fn dockerfiles_and_manifests_pass_their_validators() {
 struct Docker {
     client: String,
     host: Option<String>,
-    daemon: Option<(Child, tempfile::TempDir)>,
+    daemon: Option<Daemon>,
+}
+
+/// A `dockerd` this test started: the process, its scratch folder, and whether the default
+/// bridge (docker0), which dockerd makes and leaves, was there before it.
+struct Daemon {
+    process: Child,
+    _run: tempfile::TempDir,
+    bridge_existed: bool,
 }
 
 impl Docker {
@@ -221,7 +229,8 @@ impl Docker {
         let data = Path::new(env!("CARGO_TARGET_TMPDIR")).join("docker");
         let socket = format!("unix://{}", run.path().join("docker.sock").display());
         let log = std::fs::File::create(run.path().join("dockerd.log")).unwrap();
-        let child = Command::new("dockerd")
+        let bridge_existed = Path::new("/sys/class/net/docker0").exists();
+        let process = Command::new("dockerd")
             .arg("--host")
             .arg(&socket)
             .arg("--data-root")
@@ -234,9 +243,10 @@ impl Docker {
             .stderr(log)
             .spawn()
             .ok()?;
-        eprintln!("started dockerd (pid {}) on {socket}", child.id());
+        eprintln!("started dockerd (pid {}) on {socket}", process.id());
+        let log = run.path().join("dockerd.log");
         self.host = Some(socket);
-        self.daemon = Some((child, run));
+        self.daemon = Some(Daemon { process, _run: run, bridge_existed });
         let t0 = Instant::now();
         while t0.elapsed() < Duration::from_secs(30) {
             if self.command().arg("info").output().is_ok_and(|o| o.status.success()) {
@@ -244,8 +254,7 @@ impl Docker {
             }
             std::thread::sleep(Duration::from_millis(200));
         }
-        let (_, run) = self.daemon.as_ref().unwrap();
-        let log = std::fs::read_to_string(run.path().join("dockerd.log")).unwrap_or_default();
+        let log = std::fs::read_to_string(log).unwrap_or_default();
         panic!("dockerd did not answer within 30 s:\n{log}");
     }
 
@@ -285,19 +294,23 @@ impl Docker {
 
 impl Drop for Docker {
     fn drop(&mut self) {
-        if let Some((mut child, _run)) = self.daemon.take() {
-            let pid = child.id().to_string();
-            let _ = Command::new("kill").args(["-TERM", &pid]).status();
-            let t0 = Instant::now();
-            while t0.elapsed() < Duration::from_secs(20) {
-                if let Ok(Some(_)) = child.try_wait() {
-                    eprintln!("stopped dockerd (pid {pid})");
-                    return;
-                }
-                std::thread::sleep(Duration::from_millis(100));
+        let Some(mut daemon) = self.daemon.take() else {
+            return;
+        };
+        let pid = daemon.process.id().to_string();
+        let _ = Command::new("kill").args(["-TERM", &pid]).status();
+        let t0 = Instant::now();
+        while !matches!(daemon.process.try_wait(), Ok(Some(_))) {
+            if t0.elapsed() > Duration::from_secs(20) {
+                let _ = daemon.process.kill();
+                let _ = daemon.process.wait();
+                break;
             }
-            let _ = child.kill();
-            let _ = child.wait();
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        eprintln!("stopped dockerd (pid {pid})");
+        if !daemon.bridge_existed {
+            let _ = Command::new("ip").args(["link", "delete", "docker0"]).status();
         }
     }
 }
