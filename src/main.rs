@@ -37,6 +37,8 @@ enum Command {
     Eval(commands::eval::EvalArgs),
     /// Draw a mesh or point cloud to an image (PNG, JPEG, WebP): a grid of views around it.
     Render(commands::render::RenderArgs),
+    /// Exit 0 when a running server answers its readiness check, else 1 (a container's HEALTHCHECK).
+    Healthcheck(commands::healthcheck::HealthcheckArgs),
     /// Benchmarks that print a table (run them in a release build).
     #[command(subcommand)]
     Bench(commands::bench::BenchCommand),
@@ -53,6 +55,7 @@ fn main() -> anyhow::Result<()> {
         Command::Serve(args) => commands::serve::run(&args),
         Command::Render(args) => commands::render::run(&args),
         Command::Baseline(args) => commands::baseline::run(&args),
+        Command::Healthcheck(args) => commands::healthcheck::run(&args),
         Command::Bench(cmd) => commands::bench::run(&cmd),
     }
 }

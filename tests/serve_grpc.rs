@@ -4,7 +4,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Server, points_json, shape};
+use common::{Server, points_json, points_request, shape};
 use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
@@ -12,17 +12,6 @@ use meshstream::server::proto::{
 };
 use serde_json::json;
 use tonic::Code;
-
-fn points_request(max_faces: u32) -> ReconstructRequest {
-    let cloud = shape();
-    ReconstructRequest {
-        input: Some(reconstruct_request::Input::Points(PointCloud {
-            positions: cloud.vertices.iter().flatten().copied().collect(),
-            normals: cloud.normals.unwrap().iter().flatten().copied().collect(),
-        })),
-        options: Some(Options { max_faces: Some(max_faces), ..Options::default() }),
-    }
-}
 
 async fn client(server: &Server) -> MeshGeneratorClient<tonic::transport::Channel> {
     MeshGeneratorClient::connect(server.grpc.clone()).await.unwrap()

@@ -4,7 +4,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Server, points_json, shape};
+use common::{Server, points_json, shape, stream_through};
 use futures_util::StreamExt;
 use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
 use meshstream::metrics::point_set_distances;
@@ -445,22 +445,7 @@ async fn overload_gets_429_with_retry_after() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigterm_lets_a_stream_finish_then_exits_0() {
     let mut server = Server::start(&["--shutdown-grace", "20"]);
-    let body = points_json(&shape(), json!({"max_faces": 300}));
-    let r = client()
-        .post(server.url("/reconstruct"))
-        .header("accept", "application/x-ndjson")
-        .json(&body)
-        .send()
-        .await
-        .unwrap();
-    let mut chunks = r.bytes_stream();
-    let _first = chunks.next().await.unwrap().unwrap();
-    server.terminate();
-    let mut text = String::new();
-    while let Some(chunk) = chunks.next().await {
-        text.push_str(std::str::from_utf8(&chunk.unwrap()).unwrap());
-    }
-    let last: Value = serde_json::from_str(text.trim().lines().last().unwrap()).unwrap();
+    let last = stream_through(&server.http, || server.terminate()).await;
     assert_eq!(last["type"], "done", "{last}");
     // New requests are refused meanwhile or the port is closed; the process exits 0.
     assert_eq!(server.wait_exit(Duration::from_secs(10)), Some(0));

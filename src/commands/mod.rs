@@ -9,6 +9,7 @@ pub mod convert;
 pub mod decode;
 pub mod eval;
 pub mod generate;
+pub mod healthcheck;
 pub mod reconstruct;
 pub mod render;
 pub mod sample;

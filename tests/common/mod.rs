@@ -6,8 +6,10 @@ use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use futures_util::StreamExt;
 use meshstream::mesh::Mesh;
 use meshstream::mesh::primitives::{cuboid, uv_sphere};
+use meshstream::server::proto::{Options, PointCloud, ReconstructRequest, reconstruct_request};
 
 pub struct Server {
     pub child: Child,
@@ -103,4 +105,38 @@ pub fn points_json(m: &Mesh, extra: serde_json::Value) -> serde_json::Value {
         b.extend(e.clone());
     }
     body
+}
+
+/// The gRPC request for [`shape`]'s points.
+pub fn points_request(max_faces: u32) -> ReconstructRequest {
+    let cloud = shape();
+    ReconstructRequest {
+        input: Some(reconstruct_request::Input::Points(PointCloud {
+            positions: cloud.vertices.iter().flatten().copied().collect(),
+            normals: cloud.normals.unwrap().iter().flatten().copied().collect(),
+        })),
+        options: Some(Options { max_faces: Some(max_faces), ..Options::default() }),
+    }
+}
+
+/// Starts an NDJSON stream of [`shape`] reconstructed at `base_url` (`http://HOST:PORT`), calls
+/// `signal` once its first bytes have arrived (to stop the server under it), reads the rest and
+/// gives the last event.
+pub async fn stream_through(base_url: &str, signal: impl FnOnce()) -> serde_json::Value {
+    let body = points_json(&shape(), serde_json::json!({"max_faces": 300}));
+    let r = reqwest::Client::new()
+        .post(format!("{base_url}/reconstruct"))
+        .header("accept", "application/x-ndjson")
+        .json(&body)
+        .send()
+        .await
+        .unwrap();
+    let mut chunks = r.bytes_stream();
+    let _first = chunks.next().await.unwrap().unwrap();
+    signal();
+    let mut text = String::new();
+    while let Some(chunk) = chunks.next().await {
+        text.push_str(std::str::from_utf8(&chunk.unwrap()).unwrap());
+    }
+    serde_json::from_str(text.trim().lines().last().unwrap()).unwrap()
 }
