@@ -27,6 +27,8 @@ RUN mkdir -p src/bin \
     && cargo build --release --locked --bin meshstream \
     && rm -rf src target/release/.fingerprint/meshstream-*
 COPY src/ src/
+# The viewer page and its examples, embedded in the binary (src/server/ui.rs).
+COPY web/ web/
 RUN cargo build --release --locked --bin meshstream \
     && strip target/release/meshstream
 
