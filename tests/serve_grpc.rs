@@ -37,9 +37,10 @@ async fn the_stream_delivers_faces_incrementally_equal_to_the_http_mesh() {
     assert_eq!(stats.faces as usize, faces.len());
     assert!(!stats.request_id.is_empty());
 
-    // A whole mesh over HTTP defaults to several candidates, fitted to the points; the stream
-    // decoded one, as the model placed it.
-    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1, "fit_rounds": 0}));
+    // A whole mesh over HTTP defaults to several candidates, welded and fitted to the points;
+    // the stream decoded one, as the model placed it.
+    let as_decoded = json!({"max_faces": 200, "candidates": 1, "weld_radius": 0, "fit_rounds": 0});
+    let body = points_json(&shape(), as_decoded);
     let r =
         reqwest::Client::new().post(server.url("/reconstruct")).json(&body).send().await.unwrap();
     let mesh = read_mesh(&r.bytes().await.unwrap(), Format::Gltf, &ReadLimits::default()).unwrap();

@@ -130,9 +130,10 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
     let server = Server::start(&[]);
-    // One candidate and no fitting for both: a whole mesh otherwise defaults to the best of
-    // several, fitted to the points.
-    let body = points_json(&shape(), json!({"max_faces": 200, "candidates": 1, "fit_rounds": 0}));
+    // One candidate, no weld and no fitting for both: a whole mesh otherwise defaults to the
+    // best of several, welded and fitted to the points.
+    let as_decoded = json!({"max_faces": 200, "candidates": 1, "weld_radius": 0, "fit_rounds": 0});
+    let body = points_json(&shape(), as_decoded);
     let (_, glb) = reconstruct_glb(&server, &body).await;
     let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
     for accept in ["text/event-stream", "application/x-ndjson"] {
