@@ -185,6 +185,11 @@ impl CoordinateNll {
 
 /// -log p(target) at every position. logits (B, T, C), targets (B, T) u32.
 fn picked_nll(logits: &Tensor, targets: &Tensor) -> Result<Tensor> {
+    if targets.elem_count() == 0 {
+        // A batch of meshes without faces (a greedy decode that ended at once) has no
+        // coordinates to score, and candle cannot take the softmax of nothing.
+        return Ok(Tensor::zeros(targets.dims(), logits.dtype(), logits.device())?);
+    }
     let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
     let targets = targets.to_dtype(DType::U32)?.unsqueeze(D::Minus1)?.contiguous()?;
     let picked = logp.contiguous()?.gather(&targets, D::Minus1)?;
@@ -253,6 +258,13 @@ mod tests {
         assert!(
             by_coordinate.iter().all(|c| c.end > 0.0 && c.coordinates.iter().all(|&v| v > 0.0))
         );
+
+        // A mesh without faces has only its end of mesh to score.
+        let empty = TrainExample { faces: &[], ..examples[0] };
+        let batch = TrainBatch::new(&[empty], &Device::Cpu).unwrap();
+        let nothing = model.coordinate_nll(&batch).unwrap();
+        assert_eq!(nothing[0].coordinates, [0.0; 9]);
+        assert!(nothing[0].end > 0.0 && nothing[0].per_position(0) == nothing[0].end);
     }
 
     #[test]
