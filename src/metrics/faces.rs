@@ -63,7 +63,8 @@ pub fn summarize_faces(matches: &[FaceMatch]) -> FaceSummary {
     }
 }
 
-fn ratio(part: usize, whole: usize) -> f64 {
+/// `part / whole`, 0 when there is no whole.
+pub(super) fn ratio(part: usize, whole: usize) -> f64 {
     if whole == 0 { 0.0 } else { part as f64 / whole as f64 }
 }
 

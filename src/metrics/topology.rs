@@ -7,6 +7,8 @@ use std::collections::HashMap;
 
 use crate::mesh::{DisjointSets, Mesh, position_key};
 
+use super::faces::ratio;
+
 /// The edges and parts of one mesh, its corners welded by exact position first: files split
 /// vertices along seams (normals, UVs), which is not a hole in the surface.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -25,16 +27,12 @@ pub struct Topology {
 
 impl Topology {
     pub fn boundary_share(&self) -> f64 {
-        share(self.boundary_edges, self.edges)
+        ratio(self.boundary_edges, self.edges)
     }
 
     pub fn non_manifold_share(&self) -> f64 {
-        share(self.non_manifold_edges, self.edges)
+        ratio(self.non_manifold_edges, self.edges)
     }
-}
-
-fn share(part: usize, whole: usize) -> f64 {
-    if whole == 0 { 0.0 } else { part as f64 / whole as f64 }
 }
 
 /// The topology of `mesh`; indices must be valid ([`Mesh::validate`]), faces with an index
