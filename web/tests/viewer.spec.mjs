@@ -1,40 +1,58 @@
-// The viewer in a real browser (Debian's chromium, driven by playwright-core) against a running
-// `meshstream serve`. Run by tests/web_viewer.rs, which starts the server; by hand:
+// The viewer in a real browser against a running `meshstream serve`: Debian's chromium (over
+// CDP) or Firefox ESR (over WebDriver BiDi), both driven by puppeteer-core. Run by
+// tests/web_viewer.rs, which starts the server; by hand:
 //   MESHSTREAM_URL=http://127.0.0.1:8080 ARTIFACTS=/tmp/viewer node web/tests/viewer.spec.mjs
-// It writes screenshots, the downloaded GLB and result.json (what it saw) to ARTIFACTS.
+//   BROWSER=firefox ... xvfb-run -a node web/tests/viewer.spec.mjs
+// It writes screenshots, the downloaded files and result.json (what it saw) to ARTIFACTS.
 
 import assert from 'node:assert/strict';
-import { mkdir, readFile, writeFile } from 'node:fs/promises';
-import { chromium } from 'playwright-core';
+import { copyFile, mkdir, readFile, readdir, rm, writeFile } from 'node:fs/promises';
+import puppeteer from 'puppeteer-core';
 
 const base = process.env.MESHSTREAM_URL;
 const artifacts = process.env.ARTIFACTS;
-const executablePath = process.env.CHROMIUM || '/usr/bin/chromium';
+const browserName = process.env.BROWSER || 'chromium';
 assert(base && artifacts, 'set MESHSTREAM_URL and ARTIFACTS');
 await mkdir(artifacts, { recursive: true });
+const downloads = `${artifacts}/downloads`;
+await rm(downloads, { recursive: true, force: true });
+await mkdir(downloads);
 const examples = new URL('../examples/', import.meta.url);
-const step = (text) => console.log(`viewer: ${text}`);
+const step = (text) => console.log(`viewer (${browserName}): ${text}`);
 
-const browser = await chromium.launch({
-  executablePath,
-  headless: true,
-  args: [
-    '--no-sandbox',
-    '--disable-gpu',
-    // WebGL without a GPU: ANGLE on SwiftShader, which chromium no longer falls back to alone.
-    '--use-angle=swiftshader',
-    '--enable-unsafe-swiftshader',
-    '--disable-quic',
-    '--no-first-run',
-    '--disable-background-networking',
-    '--disable-component-update',
-    '--disable-sync',
-  ],
-  // playwright gives every launch a fresh, empty profile (its own --user-data-dir).
-});
+const launches = {
+  chromium: {
+    browser: 'chrome',
+    executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+    headless: true,
+    args: [
+      '--no-sandbox',
+      '--disable-gpu',
+      // WebGL without a GPU: ANGLE on SwiftShader, which chromium no longer falls back to alone.
+      '--use-angle=swiftshader',
+      '--enable-unsafe-swiftshader',
+      '--disable-quic',
+      '--no-first-run',
+      '--disable-background-networking',
+      '--disable-component-update',
+      '--disable-sync',
+    ],
+  },
+  // Headless Firefox has no WebGL without a display on Linux: tests/web_viewer.rs runs it on a
+  // virtual one (xvfb-run), where it draws with Mesa's llvmpipe.
+  firefox: {
+    browser: 'firefox',
+    executablePath: process.env.FIREFOX || '/usr/bin/firefox-esr',
+    headless: false,
+  },
+};
+assert(launches[browserName], `BROWSER is chromium or firefox, not ${browserName}`);
+// puppeteer gives every launch a fresh, empty profile.
+const browser = await puppeteer.launch({ ...launches[browserName], defaultViewport: { width: 1000, height: 620 } });
 const result = {};
 try {
-  const page = await browser.newPage({ viewport: { width: 1000, height: 620 }, acceptDownloads: true });
+  const context = await browser.createBrowserContext({ downloadBehavior: { policy: 'allow', downloadPath: downloads } });
+  const page = await context.newPage();
   const pageErrors = [];
   page.on('pageerror', (error) => pageErrors.push(error.message));
   page.on('console', (message) => {
@@ -46,8 +64,11 @@ try {
   // CI runs this beside the other tests on a few cores: be patient.
   page.setDefaultTimeout(120_000);
   const shoot = (name) => page.screenshot({ path: `${artifacts}/${name}.png` });
-  const state = () => page.locator('body').getAttribute('data-state');
-  const faceCount = async () => Number(await page.locator('#face-count').textContent());
+  const text = (selector) => page.$eval(selector, (e) => e.textContent);
+  const attribute = (selector, name) => page.$eval(selector, (e, name) => e.getAttribute(name), name);
+  const fill = (selector, value) => page.locator(selector).fill(value);
+  const state = () => attribute('body', 'data-state');
+  const faceCount = async () => Number(await text('#face-count'));
   const running = async () => {
     const text = await (await fetch(`${base}/metrics`)).text();
     const line = text.split('\n').find((l) => l.startsWith('meshstream_running_sequences '));
@@ -58,14 +79,15 @@ try {
   step('open the page');
   await page.goto(base);
   await page.waitForFunction(() => !document.getElementById('server').textContent.startsWith('Asking'));
-  const serverLine = await page.locator('#server').textContent();
+  const serverLine = await text('#server');
   assert.match(serverLine, /up to \d+ faces/, serverLine);
-  assert.equal(await page.locator('#max_faces').getAttribute('placeholder'), String(JSON.parse(await (await fetch(`${base}/v1/info`)).text()).limits.max_faces));
+  assert.equal(await attribute('#max_faces', 'placeholder'), String(JSON.parse(await (await fetch(`${base}/v1/info`)).text()).limits.max_faces));
 
   step('upload a point cloud and watch its faces arrive');
-  await page.fill('#max_faces', '400');
+  await fill('#max_faces', '400');
   const streamed = page.waitForResponse((r) => r.url().includes('/reconstruct'));
-  await page.setInputFiles('#file', new URL('mug-points.ply', examples).pathname);
+  const fileInput = await page.$('#file');
+  await fileInput.uploadFile(new URL('mug-points.ply', examples).pathname);
   await page.waitForFunction(() => document.getElementById('input-name').textContent.endsWith('2048 points'));
   assert.equal((await streamed).headers()['content-type'], 'application/x-ndjson');
   // A screenshot while the faces stream in (if the stream outruns the poll, at its end).
@@ -76,10 +98,10 @@ try {
   result.streaming_state = await state();
   result.streaming_faces = await faceCount();
   await page.waitForFunction(() => document.body.dataset.state !== 'running');
-  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  assert.equal(await state(), 'done', await text('#error'));
   // The page's done line, and the same request sent here: decoding is seeded, so it streams the
   // same faces (the page's own response body is gone: the page read it as a stream).
-  const pageDone = (await page.locator('#progress').textContent()).match(/Done: (\d+) faces/);
+  const pageDone = (await text('#progress')).match(/Done: (\d+) faces/);
   assert(pageDone, 'no done line on the page');
   const direct = await fetch(`${base}/reconstruct?max_faces=400`, {
     method: 'POST',
@@ -94,7 +116,7 @@ try {
   result.page_faces = await faceCount();
   assert.equal(result.page_faces, done.faces, 'the page counts the faces the done event reports');
   assert.equal(Number(pageDone[1]), done.faces);
-  assert.match(await page.locator('#progress').textContent(), /faces\/s · first face after/);
+  assert.match(await text('#progress'), /faces\/s · first face after/);
   await shoot('done');
 
   step('the canvas shows the faces');
@@ -114,15 +136,24 @@ try {
     return differing / (data.length / 4);
   });
   assert(result.lit_fraction > 0.01, `the canvas is blank: ${result.lit_fraction} of its pixels differ`);
-  await page.check('#wireframe');
+  await page.click('#wireframe');
+  assert(await page.$eval('#wireframe', (e) => e.checked));
   await shoot('wireframe');
-  await page.uncheck('#wireframe');
+  await page.click('#wireframe');
 
   step('download the result as GLB, OBJ, PLY and STL');
   for (const format of ['glb', 'obj', 'ply', 'stl']) {
-    const [download] = await Promise.all([page.waitForEvent('download'), page.click(`[data-format=${format}]`)]);
-    assert.equal(download.suggestedFilename(), `mug-points-meshstream.${format}`);
-    await download.saveAs(`${artifacts}/result.${format}`);
+    await page.click(`[data-format=${format}]`);
+    // The browser saves it under the name the page suggests; until it is whole, under another
+    // (chromium's .crdownload, Firefox's .part).
+    const name = `mug-points-meshstream.${format}`;
+    const t0 = Date.now();
+    while (!(await readdir(downloads)).includes(name)
+      || (await readdir(downloads)).some((f) => f.endsWith('.crdownload') || f.endsWith('.part'))) {
+      assert(Date.now() - t0 < 30_000, `no ${name} in ${downloads}: ${await readdir(downloads)}`);
+      await new Promise((r) => setTimeout(r, 50));
+    }
+    await copyFile(`${downloads}/${name}`, `${artifacts}/result.${format}`);
   }
   const glb = await readFile(`${artifacts}/result.glb`);
   assert.equal(glb.toString('latin1', 0, 4), 'glTF');
@@ -131,7 +162,7 @@ try {
 
   step('drop a mesh on the page');
   const mesh = (await readFile(new URL('pine-tree.ply', examples))).toString('base64');
-  await page.fill('#max_faces', '150');
+  await fill('#max_faces', '150');
   await page.evaluate((base64) => {
     const bytes = Uint8Array.from(atob(base64), (c) => c.charCodeAt(0));
     const transfer = new DataTransfer();
@@ -141,10 +172,24 @@ try {
   // The input line gets its points once the page has read the file, just before it sends it.
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
     && document.getElementById('input-name').textContent.startsWith('dropped-tree.ply (2.0 KB): 4096 points drawn on its surface'));
-  assert.equal(await state(), 'done', await page.locator('#error').textContent());
+  assert.equal(await state(), 'done', await text('#error'));
   result.dropped_mesh_faces = await faceCount();
   assert(result.dropped_mesh_faces > 0);
   await shoot('dropped-mesh');
+
+  step('an option past the server\'s limit shows the API\'s message');
+  const tooMany = await fetch(`${base}/reconstruct?max_faces=999999`, {
+    method: 'POST',
+    headers: { 'content-type': 'application/ply' },
+    body: await readFile(new URL('pine-tree.ply', examples)),
+  });
+  assert.equal(tooMany.status, 422);
+  const { error: limitError } = await tooMany.json();
+  await fill('#max_faces', '999999');
+  await page.click('#run');
+  await page.waitForFunction(() => document.body.dataset.state === 'error');
+  result.limit_error_text = await text('#error');
+  assert.equal(result.limit_error_text, `422 ${limitError.code}: ${limitError.message}`);
 
   step('an invalid file shows the API\'s message');
   const broken = Buffer.from('ply\nformat nonsense\nend_header\n');
@@ -155,20 +200,21 @@ try {
   });
   const { error } = await refused.json();
   assert.equal(refused.status, 400);
-  await page.setInputFiles('#file', { name: 'broken.ply', mimeType: 'application/octet-stream', buffer: broken });
+  await writeFile(`${artifacts}/broken.ply`, broken);
+  await fileInput.uploadFile(`${artifacts}/broken.ply`);
   await page.waitForFunction(() => document.body.dataset.state === 'error');
-  result.error_text = await page.locator('#error').textContent();
+  result.error_text = await text('#error');
   assert.equal(result.error_text, `400 ${error.code}: ${error.message}`);
   await shoot('error');
 
   step('an image: diffusion progress, then faces');
-  await page.fill('#steps', '8');
-  await page.fill('#max_faces', '200');
+  await fill('#steps', '8');
+  await fill('#max_faces', '200');
   await page.click('[data-example="chest.png"]');
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
     && document.getElementById('input-name').textContent.startsWith('chest'));
-  assert.equal(await state(), 'done', await page.locator('#error').textContent());
-  result.image_progress = await page.locator('#progress').textContent();
+  assert.equal(await state(), 'done', await text('#error'));
+  result.image_progress = await text('#progress');
   assert.match(result.image_progress, /diffusion step 8 of 8/);
   await shoot('image');
 
@@ -176,7 +222,7 @@ try {
   // allows (a point cloud's faces can all arrive before a click lands).
   step('cancel frees the server\'s slot');
   assert.equal(await running(), 0);
-  await page.fill('#steps', await page.locator('#steps').getAttribute('max'));
+  await fill('#steps', await attribute('#steps', 'max'));
   await page.click('#run');
   await page.waitForFunction(() => Number(document.getElementById('progress').textContent.match(/diffusion step (\d+)/)?.[1]) >= 3
     || document.body.dataset.state !== 'running');
