@@ -124,7 +124,7 @@ async fn keys_guard_http_and_grpc_alike_and_never_reach_the_log() {
             let value: MetadataValue<_> = value.parse().unwrap();
             request.metadata_mut().insert("authorization", value);
         }
-        let status = grpc.reconstruct(request).await.err().expect("refused");
+        let status = grpc.reconstruct(request).await.expect_err("refused");
         assert_eq!(status.code(), Code::Unauthenticated, "{authorization:?}: {status:?}");
         grpc_messages.push(status.message().to_string());
     }
