@@ -154,7 +154,7 @@ fn dockerfiles_and_manifests_pass_their_validators() {
     // .hadolint.yaml in the root holds the rules it ignores, with why.
     checked(Command::new("hadolint").current_dir(ROOT).args(["Dockerfile", "Dockerfile.cuda"]));
     let scratch = tempfile::tempdir().unwrap();
-    for dir in ["base", "overlays/cpu", "overlays/gpu"] {
+    for dir in ["base", "overlays/cpu", "overlays/gpu", "overlays/cpu-ingress"] {
         let rendered = checked(
             Command::new("kubectl")
                 .current_dir(ROOT)
@@ -175,6 +175,15 @@ fn dockerfiles_and_manifests_pass_their_validators() {
         }
         assert!(rendered.contains("clusterIP: None"), "{dir}: no headless gRPC Service");
         assert!(rendered.contains("path: /readyz") && rendered.contains("path: /healthz"));
+        // API keys from an optional Secret.
+        assert!(
+            rendered.contains("name: meshstream-api-keys") && rendered.contains("optional: true")
+        );
+        if dir == "overlays/cpu-ingress" {
+            assert_eq!(rendered.matches("kind: Ingress\n").count(), 2, "{dir}: HTTP and gRPC");
+            assert!(rendered.contains("nginx.ingress.kubernetes.io/backend-protocol: GRPC"));
+            assert!(rendered.contains("secretName: meshstream-tls"));
+        }
         if dir == "overlays/gpu" {
             assert!(rendered.contains("nvidia.com/gpu: \"1\""));
             assert!(rendered.contains("MESHSTREAM_DEVICE: cuda:0"));

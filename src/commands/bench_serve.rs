@@ -16,7 +16,7 @@ use meshstream::server::proto::{
     Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
 };
 use meshstream::server::{
-    ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
+    AuthConfig, ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
 };
 
 use super::out;
@@ -82,6 +82,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         image: ImageServeConfig::default(),
         model_dir: args.model.clone(),
         ui: false,
+        auth: AuthConfig::default(),
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {

@@ -10,7 +10,8 @@ use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::{
-    ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
+    ApiKeys, AuthConfig, DEFAULT_OPEN_PATHS, ImageServeConfig, InputLimits, Listeners, OpenPath,
+    ServeConfig, WholeMeshDefaults, serve,
 };
 use tracing_subscriber::EnvFilter;
 
@@ -125,6 +126,25 @@ pub struct ServeArgs {
     /// Do not serve the viewer page at `GET /` (the API only).
     #[arg(long, env = "MESHSTREAM_NO_UI", value_parser = clap::builder::BoolishValueParser::new())]
     no_ui: bool,
+    /// An API key that requests must carry (HTTP `Authorization: Bearer KEY`, gRPC metadata
+    /// `authorization: Bearer KEY`); repeat the flag, or comma-separate keys in the variable,
+    /// for several. Without any key, no request needs one.
+    #[arg(
+        long = "api-key",
+        value_name = "KEY",
+        env = "MESHSTREAM_API_KEY",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    api_keys: Vec<String>,
+    /// A file of API keys, one a line (blank lines and # comments skipped), read at start.
+    #[arg(long, env = "MESHSTREAM_API_KEY_FILE")]
+    api_key_file: Option<PathBuf>,
+    /// Paths that need no key, comma-separated: exact, or a prefix ending in `*`; HTTP paths
+    /// and gRPC methods (`/package.Service/Method`) alike.
+    #[arg(long, env = "MESHSTREAM_AUTH_OPEN_PATHS", value_delimiter = ',',
+          default_value = DEFAULT_OPEN_PATHS)]
+    auth_open_paths: Vec<OpenPath>,
 }
 
 fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
@@ -138,6 +158,10 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     match args.log_format {
         LogFormat::Text => logs.init(),
         LogFormat::Json => logs.json().init(),
+    }
+    let keys = ApiKeys::new(&args.api_keys, args.api_key_file.as_deref())?;
+    if !keys.is_empty() {
+        tracing::info!(keys = keys.len(), "requests need an API key");
     }
     let device = parse_device(&args.device)?;
     let model = checkpoint::load(&args.model, &device)
@@ -191,6 +215,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             max_side: args.max_image_side,
         },
         ui: !args.no_ui,
+        auth: AuthConfig { keys, open_paths: args.auth_open_paths.clone() },
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {

@@ -21,6 +21,7 @@ use utoipa::OpenApi;
 use crate::engine::{Conditioning, DecodeOptions, Engine, Event, Request, RequestStream};
 use crate::mesh::{Format, write_mesh};
 
+use super::auth::AuthLayer;
 use super::error::{ApiError, ErrorBody};
 use super::events::{DoneEvent, FaceEvent, Line, ProgressEvent};
 use super::image_input::{GenerateOptions, ImageDefaults, read_upload};
@@ -49,12 +50,45 @@ pub struct AppState {
         with the FACE method, streamed face by face."
     ),
     paths(reconstruct, generate, healthz, readyz, metrics, info),
-    components(schemas(PointsBody, ErrorBody, ProgressEvent, FaceEvent, DoneEvent))
+    components(schemas(PointsBody, ErrorBody, ProgressEvent, FaceEvent, DoneEvent)),
+    modifiers(&BearerKeys)
 )]
 struct ApiDoc;
 
-/// The API's routes, and the viewer page's when `ui` is set.
-pub fn router(state: AppState, ui: bool) -> Router {
+/// The API keys' scheme; operations list it beside "none", as a server may require no key.
+struct BearerKeys;
+
+impl utoipa::Modify for BearerKeys {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let scheme = HttpBuilder::new().scheme(HttpAuthScheme::Bearer).description(Some(
+            "An API key, when the server is started with --api-key or --api-key-file",
+        ));
+        openapi
+            .components
+            .get_or_insert_with(Default::default)
+            .add_security_scheme("api_key", SecurityScheme::Http(scheme.build()));
+    }
+}
+
+/// A file's bytes, in a request or a response.
+#[derive(utoipa::ToSchema)]
+#[schema(value_type = String, format = Binary)]
+#[allow(dead_code)] // a schema only
+struct Binary(Vec<u8>);
+
+/// `POST /generate` as `multipart/form-data`: the image, and the options (those of the query
+/// form) as further fields.
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)] // a schema only
+struct GenerateForm {
+    #[schema(value_type = String, format = Binary)]
+    image: Vec<u8>,
+}
+
+/// The API's routes, and the viewer page's when `ui` is set; `auth` refuses requests without
+/// a key (inside the request-id and trace layers, so that refusals carry an id and are traced).
+pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
     let page = if ui { super::ui::routes() } else { Router::new() };
     Router::new()
         .merge(page)
@@ -67,6 +101,7 @@ pub fn router(state: AppState, ui: bool) -> Router {
         .route("/openapi.json", get(openapi))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "not_found", "no such route") })
         .with_state(state)
+        .layer(auth)
         .layer(PropagateRequestIdLayer::x_request_id())
         .layer(TraceLayer::new_for_http().make_span_with(|req: &axum::http::Request<Body>| {
             let id = req.headers().get("x-request-id").and_then(|v| v.to_str().ok());
@@ -85,14 +120,15 @@ pub fn router(state: AppState, ui: bool) -> Router {
     post,
     path = "/reconstruct",
     params(ReconstructOptions),
+    security((), ("api_key" = [])),
     request_body(
         content(
             (PointsBody = "application/json"),
-            (Vec<u8> = "application/octet-stream"),
-            (Vec<u8> = "model/gltf-binary"),
-            (Vec<u8> = "application/ply"),
-            (Vec<u8> = "model/obj"),
-            (Vec<u8> = "model/stl"),
+            (Binary = "application/octet-stream"),
+            (Binary = "model/gltf-binary"),
+            (Binary = "application/ply"),
+            (Binary = "model/obj"),
+            (Binary = "model/stl"),
         ),
         description = "Points as JSON (options in the body), or a file (options as query \
             parameters); a mesh is sampled to points, missing normals are estimated"
@@ -103,11 +139,16 @@ pub fn router(state: AppState, ui: bool) -> Router {
             ("x-meshstream-faces" = usize, description = "Faces in the mesh"),
             ("x-meshstream-time-ms" = f64, description = "Time in the engine"),
         ), content(
-            (Vec<u8> = "model/gltf-binary"),
+            (Binary = "model/gltf-binary"),
+            (Binary = "model/obj"),
+            (Binary = "application/ply"),
+            (Binary = "model/stl"),
             (String = "text/event-stream"),
             (String = "application/x-ndjson"),
         )),
         (status = 400, description = "Malformed body or unknown format", body = ErrorBody),
+        (status = 401, description = "An API key is required and none valid was given", body = ErrorBody,
+            headers(("www-authenticate" = String, description = "Bearer"))),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
         (status = 422, description = "Invalid points or options", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
@@ -152,22 +193,28 @@ async fn reconstruct(
     post,
     path = "/generate",
     params(GenerateOptions),
+    security((), ("api_key" = [])),
     request_body(
         content(
-            (Vec<u8> = "image/png"),
-            (Vec<u8> = "image/jpeg"),
-            (Vec<u8> = "image/webp"),
-            (Vec<u8> = "multipart/form-data"),
+            (Binary = "image/png"),
+            (Binary = "image/jpeg"),
+            (Binary = "image/webp"),
+            (GenerateForm = "multipart/form-data"),
         ),
         description = "An image, raw or as the `image` part of a form"
     ),
     responses(
         (status = 200, description = "The mesh, or the event stream", content(
-            (Vec<u8> = "model/gltf-binary"),
+            (Binary = "model/gltf-binary"),
+            (Binary = "model/obj"),
+            (Binary = "application/ply"),
+            (Binary = "model/stl"),
             (String = "text/event-stream"),
             (String = "application/x-ndjson"),
         )),
         (status = 400, description = "Not a usable image, or a malformed form", body = ErrorBody),
+        (status = 401, description = "An API key is required and none valid was given", body = ErrorBody,
+            headers(("www-authenticate" = String, description = "Bearer"))),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
         (status = 422, description = "Invalid options", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
@@ -383,14 +430,16 @@ async fn mesh_response(
 }
 
 /// Live: the process answers.
-#[utoipa::path(get, path = "/healthz", responses((status = 200, description = "Alive")))]
+#[utoipa::path(get, path = "/healthz", responses(
+    (status = 200, description = "Alive", body = String, content_type = "text/plain"),
+))]
 async fn healthz() -> &'static str {
     "ok"
 }
 
 /// Ready: the model is loaded and the engine accepts requests.
 #[utoipa::path(get, path = "/readyz", responses(
-    (status = 200, description = "Ready"),
+    (status = 200, description = "Ready", body = String, content_type = "text/plain"),
     (status = 503, description = "Shutting down or stopped", body = ErrorBody),
 ))]
 async fn readyz(State(state): State<AppState>) -> Response {
@@ -409,7 +458,10 @@ async fn readyz(State(state): State<AppState>) -> Response {
 
 /// Prometheus metrics: queue depth, running sequences, faces, time to first face and between
 /// faces, request duration, batch size, rejections and failures by reason.
-#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Text exposition format", content_type = "text/plain")))]
+#[utoipa::path(get, path = "/metrics", responses(
+    (status = 200, description = "The OpenMetrics text format", body = String,
+        content_type = "application/openmetrics-text"),
+))]
 async fn metrics(State(state): State<AppState>) -> Response {
     (
         [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
@@ -419,7 +471,11 @@ async fn metrics(State(state): State<AppState>) -> Response {
 }
 
 /// The model's configuration and version, the engine's settings and the request limits.
-#[utoipa::path(get, path = "/v1/info", responses((status = 200, description = "Server information", content_type = "application/json")))]
+#[utoipa::path(get, path = "/v1/info", security((), ("api_key" = [])), responses(
+    (status = 200, description = "Server information", body = Object, content_type = "application/json"),
+        (status = 401, description = "An API key is required and none valid was given", body = ErrorBody,
+            headers(("www-authenticate" = String, description = "Bearer"))),
+))]
 async fn info(State(state): State<AppState>) -> Json<serde_json::Value> {
     Json((*state.info).clone())
 }

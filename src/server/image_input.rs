@@ -11,30 +11,41 @@ use crate::engine::{DecodeOptions, ImagePrompt};
 use crate::mesh::Format;
 
 use super::error::ApiError;
-use super::input::{decode_options, media_type, output_format, unsupported};
+use super::input::{
+    MeshFormat, decode_options, media_type, output_format, seed_schema, unsupported,
+};
 
 /// Options of an image request: query parameters of a raw upload, or fields of a multipart
 /// form.
 #[derive(Debug, Clone, Default, PartialEq, Deserialize, ToSchema, IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct GenerateOptions {
     /// Face budget (default and maximum: the server's limit, see `/v1/info`).
+    #[param(minimum = 1)]
     pub max_faces: Option<usize>,
     /// Euler steps of the diffusion sampler (default: the server's, see `/v1/info`).
+    #[param(minimum = 1)]
     pub steps: Option<usize>,
     /// Classifier-free guidance: 0 ignores the image, 1 is plain conditional sampling
     /// (default: the server's).
     pub guidance: Option<f32>,
     /// Seed of the diffusion noise, and of the decoding when it samples.
+    #[param(schema_with = seed_schema)]
     pub seed: Option<u64>,
     /// Sampling temperature (default 1.2); 0 decodes greedily.
+    #[param(minimum = 0)]
     pub temperature: Option<f32>,
+    #[param(minimum = 1)]
     pub top_k: Option<usize>,
+    #[param(exclusive_minimum = 0, maximum = 1)]
     pub top_p: Option<f32>,
     /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
     /// at most 32); 1 picks coordinate by coordinate.
+    #[param(minimum = 1, maximum = 32)]
     pub face_beam: Option<usize>,
     /// glb (default), obj, ply or stl.
+    #[param(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
 }
 

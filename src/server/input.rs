@@ -16,36 +16,47 @@ use super::error::ApiError;
 /// Decoding options: fields of the JSON body, or query parameters of a raw upload.
 #[derive(Debug, Clone, Default, Deserialize, ToSchema, IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct ReconstructOptions {
     /// Face budget (default and maximum: the server's limit, see `/v1/info`).
+    #[param(minimum = 1)]
     pub max_faces: Option<usize>,
     /// Sampling temperature (default 1.2); 0 decodes greedily.
+    #[param(minimum = 0)]
     pub temperature: Option<f32>,
+    #[param(minimum = 1)]
     pub top_k: Option<usize>,
+    #[param(exclusive_minimum = 0, maximum = 1)]
     pub top_p: Option<f32>,
     /// Partial faces kept while greedy decoding picks each face's coordinates (default 4,
     /// at most 32); 1 picks coordinate by coordinate.
+    #[param(minimum = 1, maximum = 32)]
     pub face_beam: Option<usize>,
     /// Decode this many meshes, each from its own draw of the input points (all greedy for a
     /// greedy request; otherwise the first as asked, one greedy and the rest sampled), and keep
     /// the one that ends closest to the input points, fitted when it is (at most 16). Default: the server's setting (4 unless
     /// configured, see `/v1/info`) for a whole mesh, 1 for a stream. With more than 1, every
     /// face arrives at the end.
+    #[param(minimum = 1, maximum = 16)]
     pub candidates: Option<usize>,
     /// Rounds of moving each candidate's corners to fit the input points (the same faces,
     /// flat polygons split again for the moved corners; at most 200); 0 keeps them as decoded.
     /// Default: the server's setting for a whole mesh (see `/v1/info`), 0 for a stream. Above
     /// 0, every face arrives at the end.
+    #[param(maximum = 200)]
     pub fit_rounds: Option<usize>,
     /// Merge the corners of each candidate that lie within this many grid cells of each other
     /// on every axis, before fitting (at most 4): closes the cracks between faces that should
     /// share a corner; 0 keeps them as decoded. Default: the server's setting for a whole mesh
     /// (1 unless configured, see `/v1/info`), 0 for a stream. Above 0, every face arrives at
     /// the end.
+    #[param(maximum = 4)]
     pub weld_radius: Option<u16>,
     /// Seed of the point sampling and of the decoding when it samples.
+    #[param(schema_with = seed_schema)]
     pub seed: Option<u64>,
     /// glb (default), obj, ply or stl.
+    #[param(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
 }
 
@@ -58,20 +69,58 @@ pub struct ReconstructOptions {
 #[serde(deny_unknown_fields)]
 pub struct PointsBody {
     /// [[x, y, z], ...] in any units and frame: the mesh comes back in the same.
+    #[schema(value_type = Vec<Point>)]
     pub points: Vec<[f32; 3]>,
     /// One per point; estimated from the points when absent.
+    #[schema(value_type = Option<Vec<Point>>)]
     pub normals: Option<Vec<[f32; 3]>>,
+    #[schema(minimum = 1)]
     pub max_faces: Option<usize>,
+    #[schema(minimum = 0)]
     pub temperature: Option<f32>,
+    #[schema(minimum = 1)]
     pub top_k: Option<usize>,
+    #[schema(exclusive_minimum = 0, maximum = 1)]
     pub top_p: Option<f32>,
+    #[schema(minimum = 1, maximum = 32)]
     pub face_beam: Option<usize>,
+    #[schema(minimum = 1, maximum = 16)]
     pub candidates: Option<usize>,
+    #[schema(maximum = 200)]
     pub fit_rounds: Option<usize>,
+    #[schema(maximum = 4)]
     pub weld_radius: Option<u16>,
+    #[schema(schema_with = seed_schema)]
     pub seed: Option<u64>,
+    #[schema(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
 }
+
+/// A seed: any u64 (utoipa's int64 would stop at i64::MAX).
+pub(super) fn seed_schema() -> utoipa::openapi::Object {
+    utoipa::openapi::ObjectBuilder::new()
+        .schema_type(utoipa::openapi::Type::Integer)
+        .minimum(Some(0))
+        .maximum(Some(u64::MAX))
+        .build()
+}
+
+/// The mesh formats of an answer: the schema of the `format` option.
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)] // a schema only
+pub enum MeshFormat {
+    Glb,
+    Obj,
+    Ply,
+    Stl,
+}
+
+/// Three coordinates: the schema of `[f32; 3]`, which utoipa gives no length.
+#[derive(ToSchema)]
+#[schema(min_items = 3, max_items = 3)]
+#[allow(dead_code)] // a schema only
+pub struct Point(Vec<f32>);
 
 /// What a request asks for, parsed and checked.
 #[derive(Debug, Clone)]

@@ -1,5 +1,6 @@
 //! `meshstream serve`: HTTP (axum) and gRPC (tonic) in one process, on one engine.
 
+mod auth;
 mod error;
 mod events;
 mod grpc;
@@ -34,6 +35,7 @@ use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints};
 use crate::mesh::Mesh;
 use crate::model::DEFAULT_TEMPERATURE;
 
+pub use auth::{ApiKeys, AuthConfig, AuthError, DEFAULT_OPEN_PATHS, OpenPath};
 pub use error::ApiError;
 use image_input::ImageDefaults;
 pub use input::InputLimits;
@@ -66,6 +68,8 @@ pub struct ServeConfig {
     pub image: ImageServeConfig,
     /// Serve the viewer page at `GET /`.
     pub ui: bool,
+    /// API keys, and the paths that need none.
+    pub auth: AuthConfig,
 }
 
 /// How a points request answered with a whole mesh ends when it does not say: a stream's
@@ -254,9 +258,11 @@ pub async fn serve(
     let closed = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|closing| *closing).await;
     };
-    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui))
+    let auth = auth::AuthLayer::new(cfg.auth.clone(), engine.metrics().clone());
+    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui, auth.clone()))
         .with_graceful_shutdown(closed(closing_rx.clone()));
     let grpc_server = tonic::transport::Server::builder()
+        .layer(auth)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(reflection_alpha)

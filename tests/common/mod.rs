@@ -20,20 +20,32 @@ pub struct Server {
 impl Server {
     /// Starts the server with the shipped model and `extra` flags; waits until it listens.
     pub fn start(extra: &[&str]) -> Server {
-        Self::start_with_model(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default"), extra)
+        Self::start_with_model(Self::MODEL, extra)
     }
 
     /// Starts the server with the model in `model`.
     pub fn start_with_model(model: &str, extra: &[&str]) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+        let mut command = Self::command(model, extra);
+        command.stderr(Stdio::inherit());
+        Self::spawn(command)
+    }
+
+    /// The command that [`Server::start_with_model`] runs, for a test to add to (environment,
+    /// where its log goes) before [`Server::spawn`].
+    pub fn command(model: &str, extra: &[&str]) -> Command {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_meshstream"));
+        command
             .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
             .args(["--grpc-addr", "127.0.0.1:0"])
             .args(extra)
             .env("MESHSTREAM_LOG", "warn")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap();
+            .stdout(Stdio::piped());
+        command
+    }
+
+    /// Runs a server command; waits until it listens.
+    pub fn spawn(mut command: Command) -> Server {
+        let mut child = command.spawn().unwrap();
         let stdout = child.stdout.take().unwrap();
         let mut line = String::new();
         BufReader::new(stdout).read_line(&mut line).unwrap();
@@ -46,6 +58,9 @@ impl Server {
         let grpc = field("grpc").unwrap_or_else(|| panic!("no gRPC address in {line:?}"));
         Server { child, http: format!("http://{http}"), grpc: format!("http://{grpc}") }
     }
+
+    /// The shipped model's folder.
+    pub const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
 
     pub fn url(&self, path: &str) -> String {
         format!("{}{path}", self.http)
