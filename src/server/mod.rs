@@ -1,5 +1,6 @@
 //! `meshstream serve`: HTTP (axum) and gRPC (tonic) in one process, on one engine.
 
+mod connections;
 mod error;
 mod events;
 mod grpc;
@@ -34,6 +35,7 @@ use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints};
 use crate::mesh::Mesh;
 use crate::model::DEFAULT_TEMPERATURE;
 
+pub use connections::ReadTimeouts;
 pub use error::ApiError;
 use image_input::ImageDefaults;
 pub use input::InputLimits;
@@ -55,6 +57,8 @@ pub struct ServeConfig {
     pub grpc_addr: SocketAddr,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
+    /// Slow HTTP clients: how long headers and bodies may take to arrive.
+    pub read_timeouts: ReadTimeouts,
     /// How a points request answered with a whole mesh ends when it does not say.
     pub whole_mesh: WholeMeshDefaults,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
@@ -213,6 +217,7 @@ pub async fn serve(
         engine: engine.clone(),
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
+        body_read_timeout: cfg.read_timeouts.body,
         whole_mesh: cfg.whole_mesh,
         request_timeout: cfg.request_timeout,
         image: cfg.image.defaults(&engine),
@@ -254,8 +259,12 @@ pub async fn serve(
     let closed = |mut rx: watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|closing| *closing).await;
     };
-    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui))
-        .with_graceful_shutdown(closed(closing_rx.clone()));
+    let http_server = connections::serve_http(
+        listeners.http,
+        http::router(state, cfg.ui),
+        cfg.read_timeouts,
+        closed(closing_rx.clone()),
+    );
     let grpc_server = tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
@@ -266,8 +275,7 @@ pub async fn serve(
             closed(closing_rx.clone()),
         );
     let servers = async {
-        let (http, grpc) = tokio::join!(http_server, grpc_server);
-        http.map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })?;
+        let ((), grpc) = tokio::join!(http_server, grpc_server);
         grpc.map_err(|e| ServerError::Serve { what: "gRPC", message: e.to_string() })
     };
     // Connections that outlive the grace period (a client that never reads) do not hold the
