@@ -25,9 +25,13 @@ impl Server {
 
     /// Starts the server with the model in `model`.
     pub fn start_with_model(model: &str, extra: &[&str]) -> Server {
+        Self::start_at(model, "127.0.0.1:0", "127.0.0.1:0", extra)
+    }
+
+    /// Starts the server with the model in `model` on the HTTP and gRPC addresses given.
+    pub fn start_at(model: &str, http: &str, grpc: &str, extra: &[&str]) -> Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_meshstream"))
-            .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
-            .args(["--grpc-addr", "127.0.0.1:0"])
+            .args(["serve", "--model", model, "--http-addr", http, "--grpc-addr", grpc])
             .args(extra)
             .env("MESHSTREAM_LOG", "warn")
             .stdout(Stdio::piped())
