@@ -28,6 +28,10 @@ pub enum BenchCommand {
     /// A real server in this process under 1, 4 and 16 concurrent gRPC clients: throughput
     /// and time to first face.
     Serve(super::bench_serve::ServeBenchArgs),
+    /// Sustained mixed traffic against a `serve` process (HTTP and gRPC, whole meshes and
+    /// streams, clients that leave, garbage, retries after 429): what completed, what was
+    /// refused and why, what was lost, latencies and the server's memory.
+    Soak(super::bench_soak::SoakArgs),
     /// The image model: one diffusion step at batch 1 and 8, and whole image requests.
     Diffusion(super::bench_diffusion::DiffusionBenchArgs),
     /// Software rendering of a 5,000-face mesh at a few image sizes.
@@ -43,6 +47,7 @@ pub fn run(cmd: &BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Mesh { seconds } => bench_mesh(Duration::from_secs_f64(*seconds)),
         BenchCommand::Decode(args) => super::bench_decode::run(args),
         BenchCommand::Serve(args) => super::bench_serve::run(args),
+        BenchCommand::Soak(args) => super::bench_soak::run(args),
         BenchCommand::Diffusion(args) => super::bench_diffusion::run(args),
         BenchCommand::Render { seconds } => bench_render(Duration::from_secs_f64(*seconds)),
     }

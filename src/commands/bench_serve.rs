@@ -9,16 +9,16 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use clap::Args;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{REFERENCE_POINTS, ReadLimits, primitives, sample_surface};
+use meshstream::mesh::{REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
-use meshstream::server::proto::{
-    Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
-};
+use meshstream::server::proto::{Options, ReconstructRequest, reconstruct_response};
 use meshstream::server::{
-    AuthConfig, ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
+    AuthConfig, ImageServeConfig, InputLimits, Listeners, ReadTimeouts, ServeConfig,
+    WholeMeshDefaults, serve,
 };
 
+use super::bench_requests::{percentile_ms, points_request, test_cloud};
 use super::out;
 
 #[derive(Args)]
@@ -76,6 +76,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             read: ReadLimits::default(),
         },
         max_body_bytes: 64 << 20,
+        read_timeouts: ReadTimeouts::default(),
         whole_mesh: WholeMeshDefaults::default(),
         request_timeout: Duration::from_secs(600),
         shutdown_grace: Duration::from_secs(5),
@@ -124,18 +125,14 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             let mut ttff: Vec<Duration> =
                 samples.iter().filter_map(|s| s.time_to_first_face).collect();
             ttff.sort();
-            let pct = |p: f64| {
-                ttff.get(((ttff.len() as f64 - 1.0) * p).round() as usize)
-                    .map_or("-".to_string(), |d| format!("{:.1} ms", d.as_secs_f64() * 1e3))
-            };
             table.add_row([
                 clients.to_string(),
                 samples.len().to_string(),
                 faces.to_string(),
                 format!("{throughput:.0}"),
                 format!("{:.2}x", throughput / base),
-                pct(0.5),
-                pct(0.99),
+                percentile_ms(&ttff, 0.5),
+                percentile_ms(&ttff, 0.99),
             ]);
         }
         let _ = stop.send(());
@@ -145,23 +142,15 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     })
 }
 
-/// A fixed test shape (a box with a sphere on top), sampled to points with normals.
+/// The test shape's points, with this run's options.
 fn request(args: &ServeBenchArgs) -> ReconstructRequest {
-    let mut shape = primitives::cuboid([1.0, 0.6, 0.8]);
-    shape.append(&primitives::uv_sphere(0.4, 8, 5).translated([0.0, 0.6, 0.0]));
-    let cloud = sample_surface(&shape, 4096, 0).unwrap_or_default();
-    ReconstructRequest {
-        input: Some(reconstruct_request::Input::Points(PointCloud {
-            positions: cloud.vertices.iter().flatten().copied().collect(),
-            normals: cloud.normals.unwrap_or_default().iter().flatten().copied().collect(),
-        })),
-        options: Some(Options {
-            max_faces: Some(args.max_faces),
-            temperature: Some(args.temperature),
-            face_beam: Some(args.face_beam),
-            ..Options::default()
-        }),
-    }
+    let options = Options {
+        max_faces: Some(args.max_faces),
+        temperature: Some(args.temperature),
+        face_beam: Some(args.face_beam),
+        ..Options::default()
+    };
+    points_request(&test_cloud(4096), options)
 }
 
 /// Sends `n` requests one after the other and reads each stream to its end.

@@ -11,7 +11,7 @@ use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits}
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::{
     ApiKeys, AuthConfig, DEFAULT_OPEN_PATHS, ImageServeConfig, InputLimits, Listeners, OpenPath,
-    ServeConfig, WholeMeshDefaults, serve,
+    ReadTimeouts, ServeConfig, WholeMeshDefaults, serve,
 };
 use tracing_subscriber::EnvFilter;
 
@@ -64,6 +64,17 @@ pub struct ServeArgs {
     /// Events buffered per client before its sequence waits for it.
     #[arg(long, env = "MESHSTREAM_STREAM_BUFFER", default_value_t = 256)]
     stream_buffer: usize,
+    /// Seconds a stream's client may leave its buffer full (read nothing) before its request
+    /// is cancelled and its slot given to another.
+    #[arg(long, env = "MESHSTREAM_STREAM_IDLE_TIMEOUT", default_value_t = 30.0)]
+    stream_idle_timeout: f64,
+    /// Seconds an HTTP client may take to send a request's headers (and an idle keep-alive
+    /// connection stays open).
+    #[arg(long, env = "MESHSTREAM_HEADER_READ_TIMEOUT", default_value_t = 30.0)]
+    header_read_timeout: f64,
+    /// Seconds an HTTP client may take to send a request's body (408 after).
+    #[arg(long, env = "MESHSTREAM_BODY_READ_TIMEOUT", default_value_t = 60.0)]
+    body_read_timeout: f64,
     /// Threads stepping the running batch (0: one per core).
     #[arg(long, env = "MESHSTREAM_DECODE_THREADS", default_value_t = 0)]
     decode_threads: usize,
@@ -184,6 +195,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         queue_timeout: seconds("queue-timeout", args.queue_timeout)?,
         aging: seconds("aging", args.aging)?,
         stream_buffer: args.stream_buffer,
+        stream_idle_timeout: seconds("stream-idle-timeout", args.stream_idle_timeout)?,
         decode_threads: args.decode_threads,
         max_diffusion_steps: args.max_diffusion_steps,
     };
@@ -201,6 +213,10 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             },
         },
         max_body_bytes: args.max_body_bytes,
+        read_timeouts: ReadTimeouts {
+            header: seconds("header-read-timeout", args.header_read_timeout)?,
+            body: seconds("body-read-timeout", args.body_read_timeout)?,
+        },
         whole_mesh: WholeMeshDefaults {
             candidates: args.candidates,
             weld_radius: args.weld_radius,

@@ -26,6 +26,10 @@ pub struct EngineConfig {
     /// Events buffered for a client that reads slower than the model writes; a sequence
     /// whose buffer is full waits (it is not stepped) until the client catches up.
     pub stream_buffer: usize,
+    /// A sequence whose client has not made room in its buffer for this long is cancelled,
+    /// so that a reader that stalls cannot hold its slot and face budget for ever.
+    #[serde(with = "secs")]
+    pub stream_idle_timeout: Duration,
     /// Threads that step parts of the running batch in parallel (0: one per core).
     pub decode_threads: usize,
     /// Euler steps an image request may ask for: each costs one or two forward passes of
@@ -44,6 +48,7 @@ impl Default for EngineConfig {
             queue_timeout: Duration::from_secs(30),
             aging: Duration::from_secs(2),
             stream_buffer: 256,
+            stream_idle_timeout: Duration::from_secs(30),
             decode_threads: 0,
             max_diffusion_steps: 250,
         }

@@ -19,6 +19,8 @@ pub enum EngineError {
     QueueTimeout(Duration),
     #[error("the request's deadline passed after {0} faces")]
     DeadlineExceeded(usize),
+    #[error("the client read nothing for {0:.1?}: its stream was cancelled")]
+    StreamIdle(Duration),
     #[error("the model failed: {0}")]
     Model(String),
     #[error("the engine stopped")]
@@ -38,6 +40,7 @@ impl EngineError {
             Self::ShuttingDown => "shutting_down",
             Self::QueueTimeout(_) => "queue_timeout",
             Self::DeadlineExceeded(_) => "deadline_exceeded",
+            Self::StreamIdle(_) => "stream_idle",
             Self::Model(_) => "model_error",
             Self::Stopped => "engine_stopped",
             Self::Unsupported(_) => "unsupported",

@@ -72,6 +72,8 @@ struct Active {
     first_face: Option<Instant>,
     last_face: Instant,
     deadline: Option<Instant>,
+    /// Since when its client has had no room for a face (see `ready`).
+    stalled_since: Option<Instant>,
     done: bool,
 }
 
@@ -321,6 +323,7 @@ impl Scheduler {
                 first_face: None,
                 last_face: Instant::now(),
                 deadline: p.request.deadline,
+                stalled_since: None,
                 submitted: p.submitted,
                 tx: p.tx,
                 done: false,
@@ -336,8 +339,10 @@ impl Scheduler {
     /// expired sequences leave the batch at once.
     fn step(&mut self) {
         let metrics = Arc::clone(&self.shared.metrics);
+        let idle_limit = self.shared.config.stream_idle_timeout;
         let now = Instant::now();
         for a in &mut self.running {
+            a.stalled_since = if a.ready() { None } else { Some(a.stalled_since.unwrap_or(now)) };
             if a.tx.is_closed() {
                 a.generation.cancel();
                 a.done = true;
@@ -345,6 +350,12 @@ impl Scheduler {
             } else if a.deadline.is_some_and(|d| now >= d) {
                 a.finish(Event::Failed(EngineError::DeadlineExceeded(a.generation.faces().len())));
                 metrics.fail("deadline_exceeded");
+            } else if a.stalled_since.is_some_and(|t| now - t >= idle_limit) {
+                // A stepped row always leaves room for the final event, so the client finds
+                // this error after its faces whenever it reads again.
+                a.generation.cancel();
+                a.finish(Event::Failed(EngineError::StreamIdle(idle_limit)));
+                metrics.fail("stream_idle");
             }
         }
         self.running.retain(|a| !a.done);

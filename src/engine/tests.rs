@@ -145,6 +145,40 @@ fn a_dropped_stream_frees_its_slot_within_a_step() {
 }
 
 #[test]
+fn a_stalled_reader_is_cancelled_after_the_idle_timeout_and_finds_why() {
+    let idle = Duration::from_millis(300);
+    let (engine, model) = engine(EngineConfig {
+        max_running: 1,
+        stream_buffer: 2,
+        stream_idle_timeout: idle,
+        ..EngineConfig::default()
+    });
+    let mut stalled = engine.submit(request(&model, 1, 40)).unwrap();
+    let first = runtime().block_on(stalled.next());
+    assert!(matches!(first, Some(Event::Face(_))), "{first:?}");
+    // Nobody reads on: the slot is given back once the timeout has passed.
+    let t0 = Instant::now();
+    while engine.status().running > 0 {
+        assert!(t0.elapsed() < Duration::from_secs(10), "the stalled stream still runs");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(t0.elapsed() >= idle / 2, "cancelled before it stalled long: {:?}", t0.elapsed());
+    assert!(engine.metrics().render().contains("requests_failed_total{reason=\"stream_idle\"} 1"));
+    // The reader finds its buffered faces, then the reason.
+    let rest = runtime().block_on(async {
+        let mut events = Vec::new();
+        while let Some(e) = stalled.next().await {
+            events.push(e);
+        }
+        events
+    });
+    assert!(matches!(rest.last(), Some(Event::Failed(EngineError::StreamIdle(_)))), "{rest:?}");
+    // A reader that keeps up is never cancelled, however long it takes.
+    let done = runtime().block_on(engine.submit(request(&model, 2, 40)).unwrap().collect());
+    assert!(done.is_ok(), "{done:?}");
+}
+
+#[test]
 fn a_full_queue_and_a_closing_engine_refuse_requests() {
     let (engine, model) = engine(EngineConfig {
         max_running: 1,

@@ -29,7 +29,8 @@ pub struct ErrorBody {
 #[derive(Serialize, ToSchema)]
 pub struct ErrorDetail {
     /// Stable and machine-readable: invalid_input, malformed_body, unsupported_format,
-    /// too_large, queue_full, queue_timeout, shutting_down, deadline_exceeded, model_error...
+    /// too_large, body_timeout, queue_full, queue_timeout, shutting_down, deadline_exceeded,
+    /// stream_idle, model_error...
     pub code: String,
     pub message: String,
 }
@@ -67,6 +68,7 @@ impl From<EngineError> for ApiError {
                 StatusCode::SERVICE_UNAVAILABLE
             }
             EngineError::DeadlineExceeded(_) => StatusCode::GATEWAY_TIMEOUT,
+            EngineError::StreamIdle(_) => StatusCode::REQUEST_TIMEOUT,
             EngineError::Model(_) => StatusCode::INTERNAL_SERVER_ERROR,
             EngineError::Unsupported(_) => StatusCode::NOT_IMPLEMENTED,
         };

@@ -37,6 +37,8 @@ impl From<ApiError> for Status {
     fn from(e: ApiError) -> Self {
         let message = format!("{}: {}", e.code, e.message);
         match e.status.as_u16() {
+            // The server gave up on the client (a stalled stream reader, a body too slow).
+            408 => Status::cancelled(message),
             429 => Status::resource_exhausted(message),
             501 => Status::unimplemented(message),
             503 => Status::unavailable(message),

@@ -33,6 +33,8 @@ pub struct AppState {
     pub engine: Engine,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
+    /// The whole body must have arrived by then.
+    pub body_read_timeout: Duration,
     /// How a points request answered with a whole mesh ends when it does not say.
     pub whole_mesh: WholeMeshDefaults,
     pub request_timeout: Duration,
@@ -149,6 +151,7 @@ pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
         (status = 400, description = "Malformed body or unknown format", body = ErrorBody),
         (status = 401, description = "An API key is required and none valid was given", body = ErrorBody,
             headers(("www-authenticate" = String, description = "Bearer"))),
+        (status = 408, description = "The body did not arrive within the body read timeout", body = ErrorBody),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
         (status = 422, description = "Invalid points or options", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
@@ -163,7 +166,7 @@ async fn reconstruct(
 ) -> Response {
     let prepared = async {
         let query = query_options::<ReconstructOptions>(&uri)?;
-        let bytes = read_body(body, state.max_body_bytes).await?;
+        let bytes = read_body(body, state.max_body_bytes, state.body_read_timeout).await?;
         let (limits, engine, headers) = (state.limits, state.engine.clone(), headers.clone());
         let whole_mesh = state.whole_mesh;
         off_runtime(move || {
@@ -215,6 +218,7 @@ async fn reconstruct(
         (status = 400, description = "Not a usable image, or a malformed form", body = ErrorBody),
         (status = 401, description = "An API key is required and none valid was given", body = ErrorBody,
             headers(("www-authenticate" = String, description = "Bearer"))),
+        (status = 408, description = "The body did not arrive within the body read timeout", body = ErrorBody),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
         (status = 422, description = "Invalid options", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
@@ -231,7 +235,7 @@ async fn generate(
     let prepared = async {
         let defaults = state.image.clone().ok_or_else(no_image_model)?;
         let query = query_options::<GenerateOptions>(&uri)?;
-        let bytes = read_body(body, state.max_body_bytes).await?;
+        let bytes = read_body(body, state.max_body_bytes, state.body_read_timeout).await?;
         let upload = read_upload(&headers, query, bytes).await?;
         off_runtime(move || {
             let parsed = upload.parse(&defaults)?;
@@ -293,8 +297,20 @@ async fn run(
     }
 }
 
-/// The whole body, or 413 `too_large` when it is over `limit` bytes.
-async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+/// The whole body; 413 `too_large` when it is over `limit` bytes, 408 `body_timeout` when it
+/// has not all arrived within `timeout` (a client trickling its upload holds a connection and
+/// a buffer only that long).
+async fn read_body(body: Body, limit: usize, timeout: Duration) -> Result<Bytes, ApiError> {
+    tokio::time::timeout(timeout, read_body_within(body, limit)).await.map_err(|_| {
+        ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            "body_timeout",
+            format!("the body did not arrive within {} s", timeout.as_secs_f64()),
+        )
+    })?
+}
+
+async fn read_body_within(body: Body, limit: usize) -> Result<Bytes, ApiError> {
     let mut chunks = body.into_data_stream();
     let mut bytes = Vec::new();
     let mut over = 0usize;

@@ -1,6 +1,7 @@
 //! `meshstream serve`: HTTP (axum) and gRPC (tonic) in one process, on one engine.
 
 mod auth;
+mod connections;
 mod error;
 mod events;
 mod grpc;
@@ -36,6 +37,7 @@ use crate::mesh::Mesh;
 use crate::model::DEFAULT_TEMPERATURE;
 
 pub use auth::{ApiKeys, AuthConfig, AuthError, DEFAULT_OPEN_PATHS, OpenPath};
+pub use connections::ReadTimeouts;
 pub use error::ApiError;
 use image_input::ImageDefaults;
 pub use input::InputLimits;
@@ -57,6 +59,8 @@ pub struct ServeConfig {
     pub grpc_addr: SocketAddr,
     pub limits: InputLimits,
     pub max_body_bytes: usize,
+    /// Slow HTTP clients: how long headers and bodies may take to arrive.
+    pub read_timeouts: ReadTimeouts,
     /// How a points request answered with a whole mesh ends when it does not say.
     pub whole_mesh: WholeMeshDefaults,
     /// A request not finished by then fails (504, DEADLINE_EXCEEDED).
@@ -217,6 +221,7 @@ pub async fn serve(
         engine: engine.clone(),
         limits: cfg.limits,
         max_body_bytes: cfg.max_body_bytes,
+        body_read_timeout: cfg.read_timeouts.body,
         whole_mesh: cfg.whole_mesh,
         request_timeout: cfg.request_timeout,
         image: cfg.image.defaults(&engine),
@@ -259,8 +264,12 @@ pub async fn serve(
         let _ = rx.wait_for(|closing| *closing).await;
     };
     let auth = auth::AuthLayer::new(cfg.auth.clone(), engine.metrics().clone());
-    let http_server = axum::serve(listeners.http, http::router(state, cfg.ui, auth.clone()))
-        .with_graceful_shutdown(closed(closing_rx.clone()));
+    let http_server = connections::serve_http(
+        listeners.http,
+        http::router(state, cfg.ui, auth.clone()),
+        cfg.read_timeouts,
+        closed(closing_rx.clone()),
+    );
     let grpc_server = tonic::transport::Server::builder()
         .layer(auth)
         .add_service(health_service)
@@ -272,8 +281,7 @@ pub async fn serve(
             closed(closing_rx.clone()),
         );
     let servers = async {
-        let (http, grpc) = tokio::join!(http_server, grpc_server);
-        http.map_err(|e| ServerError::Serve { what: "HTTP", message: e.to_string() })?;
+        let ((), grpc) = tokio::join!(http_server, grpc_server);
         grpc.map_err(|e| ServerError::Serve { what: "gRPC", message: e.to_string() })
     };
     // Connections that outlive the grace period (a client that never reads) do not hold the

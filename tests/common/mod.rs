@@ -25,7 +25,12 @@ impl Server {
 
     /// Starts the server with the model in `model`.
     pub fn start_with_model(model: &str, extra: &[&str]) -> Server {
-        let mut command = Self::command(model, extra);
+        Self::start_at(model, "127.0.0.1:0", "127.0.0.1:0", extra)
+    }
+
+    /// Starts the server with the model in `model` on the HTTP and gRPC addresses given.
+    pub fn start_at(model: &str, http: &str, grpc: &str, extra: &[&str]) -> Server {
+        let mut command = Self::command_at(model, http, grpc, extra);
         command.stderr(Stdio::inherit());
         Self::spawn(command)
     }
@@ -33,10 +38,13 @@ impl Server {
     /// The command that [`Server::start_with_model`] runs, for a test to add to (environment,
     /// where its log goes) before [`Server::spawn`].
     pub fn command(model: &str, extra: &[&str]) -> Command {
+        Self::command_at(model, "127.0.0.1:0", "127.0.0.1:0", extra)
+    }
+
+    fn command_at(model: &str, http: &str, grpc: &str, extra: &[&str]) -> Command {
         let mut command = Command::new(env!("CARGO_BIN_EXE_meshstream"));
         command
-            .args(["serve", "--model", model, "--http-addr", "127.0.0.1:0"])
-            .args(["--grpc-addr", "127.0.0.1:0"])
+            .args(["serve", "--model", model, "--http-addr", http, "--grpc-addr", grpc])
             .args(extra)
             .env("MESHSTREAM_LOG", "warn")
             .stdout(Stdio::piped());

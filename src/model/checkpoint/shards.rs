@@ -91,8 +91,33 @@ pub fn weight_files(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 fn read_safetensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>> {
-    candle_core::safetensors::load(path, device)
-        .map_err(|e| ModelError::BadCheckpoint { path: path.to_path_buf(), message: e.to_string() })
+    candle_core::safetensors::load(path, device).map_err(|e| ModelError::BadCheckpoint {
+        path: path.to_path_buf(),
+        message: cut_off_tensor(path).unwrap_or_else(|| e.to_string()),
+    })
+}
+
+/// For a file that cannot be read: which tensor its end cuts off, when a truncated copy is
+/// why (safetensors only says that the file does not cover its header's tensors).
+fn cut_off_tensor(path: &Path) -> Option<String> {
+    let bytes = std::fs::read(path).ok()?;
+    let header_len = usize::try_from(u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?)).ok()?;
+    let header_end = header_len.checked_add(8)?;
+    let header: HashMap<String, serde_json::Value> =
+        serde_json::from_slice(bytes.get(8..header_end)?).ok()?;
+    let data = bytes.len() - header_end;
+    let (start, end, name) = header
+        .iter()
+        .filter_map(|(name, info)| {
+            let offsets = info.get("data_offsets")?;
+            let (start, end) = (offsets.get(0)?.as_u64()?, offsets.get(1)?.as_u64()?);
+            (end > data as u64).then_some((start, end, name))
+        })
+        .min()?;
+    Some(format!(
+        "the file is truncated: tensor {name} (data bytes {start}..{end}) is cut off at byte \
+         {data} of the data"
+    ))
 }
 
 fn read_index(path: &Path) -> Result<ShardIndex> {
@@ -401,6 +426,25 @@ mod tests {
             ]
         );
         assert_same(&read_model_weights(dir.path(), &Device::Cpu).unwrap().tensors, &weights());
+    }
+
+    #[test]
+    fn a_truncated_file_names_the_tensor_it_cuts_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(WEIGHTS_FILE);
+        let tensors: HashMap<String, Tensor> = [("a", 16), ("b", 16)]
+            .into_iter()
+            .map(|(n, len)| (n.to_string(), Tensor::zeros(len, DType::F32, &Device::Cpu).unwrap()))
+            .collect();
+        candle_core::safetensors::save(&tensors, &path).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        // The last tensor's data is the file's last 64 bytes: cut into it.
+        std::fs::write(&path, &bytes[..bytes.len() - 10]).unwrap();
+        let err = read_model_weights(dir.path(), &Device::Cpu).unwrap_err().to_string();
+        assert!(
+            err.contains("truncated") && err.contains("tensor b (data bytes 64..128)"),
+            "{err}"
+        );
     }
 
     #[test]

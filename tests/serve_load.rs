@@ -1,0 +1,232 @@
+//! `serve` under sustained and excessive load and against clients that are slow on purpose:
+//! `bench soak` in CI size, overload against a short queue, a stalled stream reader, headers
+//! and bodies sent too slowly.
+
+mod common;
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use common::{Server, points_request};
+use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
+use serde_json::Value;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// `meshstream bench soak ARGS --json`: the report, after checking that it exited 0.
+fn soak(args: &[&str]) -> Value {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
+    let out = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+        .args(["bench", "soak", "--json", "--model", model])
+        .args(args)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}\n{stdout}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"))
+}
+
+fn count(report: &Value, prefix: &str) -> u64 {
+    let outcomes = report["outcomes"].as_object().unwrap();
+    outcomes.iter().filter(|(k, _)| k.starts_with(prefix)).map(|(_, v)| v.as_u64().unwrap()).sum()
+}
+
+#[test]
+fn a_ci_sized_soak_loses_nothing_and_gives_its_memory_back() {
+    let r = soak(&["--requests", "160", "--concurrency", "8", "--garbage-share", "0.1"]);
+    assert_eq!(r["lost"], 0, "{r}");
+    assert_eq!(r["accepted_garbage"], 0, "{r}");
+    // Every kind of request was sent and answered as it should be.
+    for kind in ["completed: HTTP whole mesh", "completed: HTTP stream", "completed: gRPC stream"] {
+        assert!(count(&r, kind) > 0, "no {kind}: {r}");
+    }
+    assert!(count(&r, "refused: HTTP 4") > 0, "no garbage refused over HTTP: {r}");
+    assert!(count(&r, "refused: gRPC InvalidArgument") > 0, "no garbage refused over gRPC: {r}");
+    assert!(count(&r, "left after the first face") > 0, "no client left early: {r}");
+    let done = count(&r, "completed") + count(&r, "refused") + count(&r, "left");
+    assert_eq!(done, 160, "{r}");
+    assert_eq!(r["server_exit"], "exit status: 0", "{r}");
+    // Memory at the end within 50% of the warm level (the 10,000-request run is held to 10%;
+    // a short run on a shared machine ends closer to its peak).
+    let rss = &r["rss_bytes"];
+    let (start, end) = (rss["start"].as_f64().unwrap(), rss["end"].as_f64().unwrap());
+    assert!(end <= start * 1.5, "RSS {start} at the start, {end} at the end: {r}");
+}
+
+#[test]
+fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
+    // As many clients as the server runs and queues (16 + 16): nobody is refused.
+    let at_capacity = soak(&[
+        "--requests",
+        "64",
+        "--concurrency",
+        "32",
+        "--garbage-share",
+        "0",
+        "--leave-share",
+        "0",
+        "--serve-arg=--max-queue=16",
+    ]);
+    // Twice that: the rest are refused with 429 and come back after Retry-After.
+    let overloaded = soak(&[
+        "--requests",
+        "128",
+        "--concurrency",
+        "64",
+        "--garbage-share",
+        "0",
+        "--leave-share",
+        "0",
+        "--serve-arg=--max-queue=16",
+    ]);
+    // Nothing lost; each request completed or, after 30 tries, was refused as the queue was
+    // full (a client may keep arriving when others have just taken the room).
+    for r in [&at_capacity, &overloaded] {
+        assert_eq!(r["lost"], 0, "{r}");
+        let refused = count(r, "refused: queue_full");
+        assert_eq!(count(r, "completed") + refused, r["requests"].as_u64().unwrap(), "{r}");
+        assert!(refused * 10 <= r["requests"].as_u64().unwrap(), "{r}");
+    }
+    assert!(overloaded["retried_429"].as_u64().unwrap() > 0, "nothing refused: {overloaded}");
+    // Refusals come at once: no queueing, no reading of more than the body.
+    let refusal_p99 = overloaded["answer_429_ms"]["p99"].as_f64().unwrap();
+    assert!(refusal_p99 < 1000.0, "429 after {refusal_p99} ms: {overloaded}");
+    // Admitted requests take about what they take at capacity (shared CI machines are noisy:
+    // a generous bound that refusals queueing in front of them would still break).
+    let p99 = |r: &Value| r["latency_ms"]["p99"].as_f64().unwrap();
+    assert!(
+        p99(&overloaded) < 2.0 * p99(&at_capacity) + 1000.0,
+        "p99 {} ms under overload, {} ms at capacity",
+        p99(&overloaded),
+        p99(&at_capacity)
+    );
+    // Memory stays flat: refused requests are not kept.
+    let peak = |r: &Value| r["rss_bytes"]["peak"].as_f64().unwrap();
+    assert!(peak(&overloaded) < 1.25 * peak(&at_capacity), "{overloaded} vs {at_capacity}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_stream_reader_is_cancelled_and_frees_its_slot() {
+    let server = Server::start(&[
+        "--max-running",
+        "1",
+        "--stream-buffer",
+        "4",
+        "--stream-idle-timeout",
+        "1",
+    ]);
+    // A client whose HTTP/2 window takes a few faces: once it stops reading, the server
+    // cannot send, the stream's buffer fills and its sequence waits.
+    let channel = tonic::transport::Endpoint::from_shared(server.grpc.clone())
+        .unwrap()
+        .initial_stream_window_size(Some(256))
+        .initial_connection_window_size(Some(256))
+        .connect()
+        .await
+        .unwrap();
+    let mut grpc = MeshGeneratorClient::new(channel);
+    let mut stalled = grpc.reconstruct(points_request(400)).await.unwrap().into_inner();
+    assert!(stalled.message().await.unwrap().is_some());
+    let c = reqwest::Client::new();
+    let t0 = Instant::now();
+    assert_eq!(server.metric(&c, "meshstream_running_sequences").await, 1.0);
+    while server.metric(&c, "meshstream_running_sequences").await > 0.0 {
+        assert!(t0.elapsed() < Duration::from_secs(10), "the stalled stream still holds its slot");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // The only slot is free: another request runs to its end.
+    let body = common::points_json(&common::shape(), serde_json::json!({"max_faces": 20}));
+    let r = c.post(server.url("/reconstruct")).json(&body).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    // The stalled reader, reading again, finds its faces and then why it was cancelled.
+    let end = loop {
+        match stalled.message().await {
+            Ok(Some(_)) => continue,
+            other => break other,
+        }
+    };
+    let status = end.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::Cancelled, "{status:?}");
+    assert!(status.message().starts_with("stream_idle"), "{status:?}");
+    assert_eq!(
+        server.metric(&c, "meshstream_requests_failed_total{reason=\"stream_idle\"}").await,
+        1.0
+    );
+}
+
+/// Whether the server closed `stream` within `limit`, writing `bytes` one at a time
+/// `every` so often meanwhile; and what it answered before closing.
+async fn trickle(
+    mut stream: TcpStream,
+    bytes: &[u8],
+    every: Duration,
+    limit: Duration,
+) -> (bool, String) {
+    let (mut read, mut write) = stream.split();
+    let mut answer = Vec::new();
+    let t0 = Instant::now();
+    let mut sent = 0;
+    while t0.elapsed() < limit {
+        if sent < bytes.len() && write.write_all(&bytes[sent..=sent]).await.is_ok() {
+            sent += 1;
+        }
+        let mut buf = [0u8; 4096];
+        match tokio::time::timeout(every, read.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => return (true, String::from_utf8_lossy(&answer).into()),
+            Ok(Ok(n)) => answer.extend_from_slice(&buf[..n]),
+            Err(_) => {}
+        }
+    }
+    (false, String::from_utf8_lossy(&answer).into())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn headers_sent_too_slowly_or_not_at_all_are_cut_off() {
+    let server = Server::start(&["--header-read-timeout", "1"]);
+    let addr = server.http.trim_start_matches("http://").to_string();
+    let headers = b"POST /reconstruct HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n\
+        Content-Length: 2\r\nX-Padding: aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa\r\n\r\n{}";
+    // A byte every 100 ms: the headers would take 13 s.
+    let t0 = Instant::now();
+    let stream = TcpStream::connect(&addr).await.unwrap();
+    let (closed, _) =
+        trickle(stream, headers, Duration::from_millis(100), Duration::from_secs(6)).await;
+    assert!(closed, "a client sending its headers byte by byte still holds its connection");
+    assert!(t0.elapsed() < Duration::from_secs(4), "closed after {:?}", t0.elapsed());
+    // A client that connects and says nothing is closed too.
+    let t0 = Instant::now();
+    let stream = TcpStream::connect(&addr).await.unwrap();
+    let (closed, _) =
+        trickle(stream, b"", Duration::from_millis(100), Duration::from_secs(6)).await;
+    assert!(closed && t0.elapsed() < Duration::from_secs(4), "a silent client held on");
+    // Clients that send at a normal pace are served as before.
+    let r = reqwest::Client::new().get(server.url("/healthz")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_body_that_trickles_is_cut_off_with_408() {
+    let server = Server::start(&["--body-read-timeout", "1"]);
+    let addr = server.http.trim_start_matches("http://").to_string();
+    let mut stream = TcpStream::connect(&addr).await.unwrap();
+    stream
+        .write_all(
+            b"POST /reconstruct HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n\
+              Content-Length: 100000\r\n\r\n",
+        )
+        .await
+        .unwrap();
+    let body = vec![b' '; 100];
+    let t0 = Instant::now();
+    let (closed, answer) =
+        trickle(stream, &body, Duration::from_millis(100), Duration::from_secs(6)).await;
+    assert!(closed, "the trickling upload is still going: {answer}");
+    assert!(t0.elapsed() < Duration::from_secs(4), "cut off after {:?}", t0.elapsed());
+    assert!(answer.starts_with("HTTP/1.1 408"), "{answer}");
+    assert!(answer.contains("\"body_timeout\""), "{answer}");
+}
