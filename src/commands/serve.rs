@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
-use meshstream::model::{checkpoint, parse_device};
+use meshstream::model::{Quantize, parse_device};
 use meshstream::server::{
     ImageServeConfig, InputLimits, Listeners, ServeConfig, WholeMeshDefaults, serve,
 };
@@ -16,7 +16,7 @@ use tracing_subscriber::EnvFilter;
 
 use super::out;
 
-use super::{candidate_count, image_model_dir, load_image_model, point_count};
+use super::{candidate_count, image_model_dir, load_face_model, load_image_model, point_count};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum LogFormat {
@@ -63,6 +63,10 @@ pub struct ServeArgs {
     /// Events buffered per client before its sequence waits for it.
     #[arg(long, env = "MESHSTREAM_STREAM_BUFFER", default_value_t = 256)]
     stream_buffer: usize,
+    /// Number format of the model's linear layers: f32, q8_0 or q4k (quantized when the model
+    /// loads; layers whose inputs do not fit the blocks stay f32).
+    #[arg(long, env = "MESHSTREAM_QUANTIZE", default_value_t = Quantize::F32)]
+    quantize: Quantize,
     /// Threads stepping the running batch (0: one per core).
     #[arg(long, env = "MESHSTREAM_DECODE_THREADS", default_value_t = 0)]
     decode_threads: usize,
@@ -140,8 +144,8 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         LogFormat::Json => logs.json().init(),
     }
     let device = parse_device(&args.device)?;
-    let model = checkpoint::load(&args.model, &device)
-        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let (model, report) = load_face_model(&args.model, &device, args.quantize)?;
+    tracing::info!("model weights: {report}");
     let image_model = match image_model_dir(&args.model, args.image_model.as_deref()) {
         Some(dir) => {
             Some(load_image_model(&dir, &args.model, args.image_encoder.as_deref(), &device)?)
