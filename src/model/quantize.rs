@@ -300,7 +300,7 @@ mod tests {
         let (_, model) = random_model(&cfg);
         let latents = random_latents(&cfg, 1, 3);
         let (hidden, logits) = first_step(&model, &latents);
-        for (quantize, tolerance) in [(Quantize::Q8_0, 0.03), (Quantize::Q4K, 0.3)] {
+        for (quantize, tolerance) in [(Quantize::Q8_0, 0.06), (Quantize::Q4K, 0.5)] {
             let mut q = model.clone();
             let report = q.quantize(quantize).unwrap();
             assert!(report.quantized > 0, "{report}");
