@@ -27,6 +27,8 @@ enum Command {
     Sample(commands::sample::SampleArgs),
     /// Reconstruct a clean mesh from a point cloud or a dense mesh with a FACE model.
     Reconstruct(commands::reconstruct::ReconstructArgs),
+    /// Write a model's linear layers quantized (q8_0 or q4k) to a GGUF model folder.
+    Quantize(commands::quantize::QuantizeArgs),
     /// Generate a mesh from an image: diffusion to the shape's latents, then the face decoder.
     Generate(commands::generate::GenerateArgs),
     /// Serve HTTP and gRPC on one engine (continuous batching, faces streamed as decoded).
@@ -51,6 +53,7 @@ fn main() -> anyhow::Result<()> {
         Command::Sample(args) => commands::sample::run(&args),
         Command::Eval(args) => commands::eval::run(&args),
         Command::Reconstruct(args) => commands::reconstruct::run(&args),
+        Command::Quantize(args) => commands::quantize::run(&args),
         Command::Generate(args) => commands::generate::run(&args),
         Command::Serve(args) => commands::serve::run(&args),
         Command::Render(args) => commands::render::run(&args),

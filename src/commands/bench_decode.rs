@@ -1,6 +1,8 @@
-//! `meshstream bench decode`: decoding speed of the FACE model with random weights, against
-//! the per-coordinate baseline running the same transformer.
+//! `meshstream bench decode`: decoding speed of the FACE model, with random weights (against
+//! the per-coordinate baseline running the same transformer) or a model folder's, in f32 and
+//! quantized side by side.
 
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -9,8 +11,9 @@ use candle_nn::{VarBuilder, VarMap};
 use meshstream::mesh::primitives::uv_sphere;
 use meshstream::mesh::{farthest_point_sampling, sample_surface};
 use meshstream::model::{
-    BaselineState, CoordinateBaseline, DEFAULT_FACE_BEAM, FaceConfig, FaceModel, GenerateOptions,
-    Generation, SamplingParams, checkpoint, parse_device, step_generations,
+    BaselineState, CoordinateBaseline, DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceConfig,
+    FaceModel, GenerateOptions, Generation, Quantize, SamplingParams, checkpoint, parse_device,
+    step_generations,
 };
 
 use super::out;
@@ -20,6 +23,16 @@ pub struct DecodeBenchArgs {
     /// Model preset (random weights).
     #[arg(long, default_value = "tiny")]
     pub preset: String,
+    /// A model folder to measure instead of random weights (the shipped one: models/default).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Number formats of the linear layers (f32, q8_0, q4k): one result each, with its ratio
+    /// against f32 measured in the same run.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![Quantize::F32])]
+    pub quantize: Vec<Quantize>,
+    /// Rounds of every measurement: the formats take turns, the best round counts.
+    #[arg(long, default_value_t = 3)]
+    pub rounds: usize,
     /// cpu or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -47,25 +60,32 @@ fn random_weights(
     Ok((FaceModel::new(cfg, vb.pp("face"))?, CoordinateBaseline::new(cfg, vb.pp("baseline"))?))
 }
 
-/// Decodes up to `faces` faces (no end of mesh) for `batch` sequences together, greedily with
-/// `face_beam`; returns the seconds taken, the faces decoded, and one sequence's KV-cache bytes
-/// (self, cross) at the end.
+/// How the benchmark decodes.
+#[derive(Debug, Clone)]
+struct Decoding {
+    sampling: SamplingParams,
+    constrained: bool,
+    face_beam: usize,
+}
+
+/// Decodes up to `faces` faces (no end of mesh) for `batch` sequences together; returns the
+/// seconds taken, the faces decoded, and one sequence's KV-cache bytes (self, cross) at the
+/// end.
 fn decode_face(
     model: &FaceModel,
     latents: &Tensor,
     batch: usize,
     faces: usize,
-    constrained: bool,
-    face_beam: usize,
+    decoding: &Decoding,
 ) -> anyhow::Result<(f64, usize, (usize, usize))> {
     let options = GenerateOptions {
-        sampling: SamplingParams::greedy(),
+        sampling: decoding.sampling.clone(),
         max_faces: faces,
         // No early end of mesh: every row decodes its budget (constrained rows stop early only
         // at a dead end, when no canonical face can follow).
         min_faces: faces,
-        constrained,
-        face_beam,
+        constrained: decoding.constrained,
+        face_beam: decoding.face_beam,
     };
     let mut gens = (0..batch)
         .map(|_| Generation::new(model, latents, options.clone()))
@@ -99,68 +119,154 @@ fn mib(bytes: usize) -> String {
     format!("{:.2} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
+/// The models measured: one per `--quantize` value, f32 first (the ratios' reference).
+fn variants(
+    f32_model: &FaceModel,
+    quantize: &[Quantize],
+) -> anyhow::Result<Vec<(Quantize, FaceModel)>> {
+    let mut list = vec![Quantize::F32];
+    list.extend(quantize.iter().copied().filter(|&q| q != Quantize::F32));
+    list.dedup();
+    list.into_iter()
+        .map(|q| {
+            let mut model = f32_model.clone();
+            let report = model.quantize(q)?;
+            if q != Quantize::F32 {
+                out(format_args!("{report}"))?;
+            }
+            Ok((q, model))
+        })
+        .collect()
+}
+
+/// Best of `rounds` for every variant, the variants taking turns so that a busy machine slows
+/// them alike.
+fn best_of<T>(
+    rounds: usize,
+    variants: &[(Quantize, FaceModel)],
+    mut run: impl FnMut(&FaceModel) -> anyhow::Result<(f64, T)>,
+) -> anyhow::Result<Vec<(f64, T)>> {
+    let mut best: Vec<Option<(f64, T)>> = variants.iter().map(|_| None).collect();
+    for _ in 0..rounds.max(1) {
+        for (slot, (_, model)) in best.iter_mut().zip(variants) {
+            let (secs, extra) = run(model)?;
+            if slot.as_ref().is_none_or(|(b, _)| secs < *b) {
+                *slot = Some((secs, extra));
+            }
+        }
+    }
+    Ok(best.into_iter().flatten().collect())
+}
+
+/// "name value (ratio against the first)" for every variant; `rate` is higher-is-better.
+fn compare(variants: &[(Quantize, FaceModel)], values: &[f64], unit: &str, rate: bool) -> String {
+    let reference = values[0];
+    variants
+        .iter()
+        .zip(values)
+        .enumerate()
+        .map(|(i, ((q, _), v))| {
+            let ratio = if rate { v / reference } else { reference / v };
+            if i == 0 {
+                format!("{q} {v:.2} {unit}")
+            } else {
+                format!("{q} {v:.2} {unit} ({ratio:.2}x)")
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" | ")
+}
+
 pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(!args.batches.contains(&0), "--batches must be at least 1");
     let device = parse_device(&args.device)?;
-    let mut cfg = FaceConfig::preset(&args.preset)?;
     let longest = args.compare.iter().copied().chain([args.faces]).max().unwrap_or(args.faces);
-    // Random weights: the position limit only has to cover the benchmark.
-    cfg.max_faces = cfg.max_faces.max(longest);
-    let (model, baseline) = random_weights(&cfg, &device).context("building the models")?;
+    let (model, baseline, source) = match &args.model {
+        Some(dir) => {
+            let mut cfg = checkpoint::load_config(dir)
+                .with_context(|| format!("loading the model in {}", dir.display()))?;
+            // The rotary positions are computed, not learned: a longer table only lets the
+            // benchmark time sequences past what the model was trained on.
+            let trained = cfg.max_faces;
+            cfg.max_faces = cfg.max_faces.max(longest);
+            let model = checkpoint::load_with_config(dir, &cfg, &device)
+                .with_context(|| format!("loading the model in {}", dir.display()))?;
+            let note = if longest > trained {
+                format!(", positions past its max_faces {trained} only timed")
+            } else {
+                String::new()
+            };
+            (model, None, format!("model {}{note}", dir.display()))
+        }
+        None => {
+            let mut cfg = FaceConfig::preset(&args.preset)?;
+            // Random weights: the position limit only has to cover the benchmark.
+            cfg.max_faces = cfg.max_faces.max(longest);
+            let (model, baseline) = random_weights(&cfg, &device).context("building the models")?;
+            (model, Some(baseline), format!("preset {}, random weights", args.preset))
+        }
+    };
+    let cfg = model.config().clone();
     out(format_args!(
-        "preset {} ({:.2}M parameters), {} threads, random weights, greedy",
-        args.preset,
+        "{source} ({:.2}M parameters), {} threads",
         cfg.parameter_count() as f64 / 1e6,
         candle_core::utils::get_num_threads()
     ))?;
+    let variants = variants(&model, &args.quantize)?;
 
-    // Encoding: FPS on the CPU, then the encoder.
-    // Points on a unit sphere; their positions double as normals (random weights, so only
-    // the shapes of the tensors matter).
+    // Encoding: FPS on the CPU, then the encoder, on points of a unit sphere (whose positions
+    // are their normals).
     let cloud = sample_surface(&uv_sphere(1.0, 64, 32), cfg.num_points, 0)?.vertices;
     let flat: Vec<f32> = cloud.iter().flatten().copied().collect();
     let points = Tensor::from_vec(flat, (1, cfg.num_points, 3), &device)?;
-    let encode = || -> anyhow::Result<(f64, f64, Tensor)> {
+    let encode = |model: &FaceModel| -> anyhow::Result<(f64, Tensor)> {
         let t = Instant::now();
         let idx: Vec<u32> = farthest_point_sampling(&cloud, cfg.num_latents, 0)
             .into_iter()
             .map(|i| i as u32)
             .collect();
-        let fps = t.elapsed().as_secs_f64();
         let idx = Tensor::from_vec(idx, (1, cfg.num_latents), &device)?;
         let latents = model.encode(&points, &points, &idx)?;
-        Ok((fps, t.elapsed().as_secs_f64(), latents))
+        Ok((t.elapsed().as_secs_f64(), latents))
     };
-    encode()?; // warm-up
-    let runs = (0..3).map(|_| encode()).collect::<anyhow::Result<Vec<_>>>()?;
-    let (fps, total) = runs.iter().fold((f64::MAX, f64::MAX), |(a, b), r| (a.min(r.0), b.min(r.1)));
-    let latents = runs[0].2.clone();
+    encode(&model)?; // warm-up
+    let encoded = best_of(args.rounds, &variants, encode)?;
+    // Every variant decodes from the f32 encoder's latents, so that only the decoding differs.
+    let latents = encoded[0].1.clone();
 
     let mut table = super::table();
     table.set_header(vec!["measurement", "result"]);
+    let ms: Vec<f64> = encoded.iter().map(|(s, _)| s * 1e3).collect();
     table.add_row(vec![
         format!(
-            "encode one point cloud ({} points -> {} latents)",
+            "encode one point cloud ({} points -> {} latents), FPS included",
             cfg.num_points, cfg.num_latents
         ),
-        format!("{:.1} ms (FPS {:.1} ms), best of 3", total * 1e3, fps * 1e3),
+        compare(&variants, &ms, "ms", false),
     ]);
-    decode_face(&model, &latents, 1, 8, false, 1)?; // warm-up
+    let greedy = Decoding { sampling: SamplingParams::greedy(), constrained: false, face_beam: 1 };
+    decode_face(&model, &latents, 1, 8, &greedy)?; // warm-up
     for &b in &args.batches {
-        let (secs, n, _) = decode_face(&model, &latents, b, args.faces, false, 1)?;
+        let runs = best_of(args.rounds, &variants, |m| {
+            let (secs, n, _) = decode_face(m, &latents, b, args.faces, &greedy)?;
+            Ok((secs, n))
+        })?;
+        let rates: Vec<f64> = runs.iter().map(|(s, n)| *n as f64 / s).collect();
         table.add_row(vec![
-            format!("FACE decode, batch {b} x {} faces", args.faces),
-            format!("{:.0} faces/s aggregate ({:.2} s)", n as f64 / secs, secs),
+            format!("FACE decode, batch {b} x {} faces, faces/s aggregate", args.faces),
+            compare(&variants, &rates, "", true),
         ]);
     }
     // What a greedy request costs: masks on, per-coordinate (beam 1) or the default beam.
     for &b in &args.batches {
         let mut rates = Vec::new();
-        for beam in [1, DEFAULT_FACE_BEAM] {
-            let (secs, n, _) = decode_face(&model, &latents, b, args.faces, true, beam)?;
+        for face_beam in [1, DEFAULT_FACE_BEAM] {
+            let masked = Decoding { constrained: true, face_beam, ..greedy.clone() };
+            let (secs, n, _) = decode_face(&model, &latents, b, args.faces, &masked)?;
             rates.push(n as f64 / secs);
         }
         table.add_row(vec![
-            format!("FACE decode, batch {b}, masks on: face beam 1 vs {DEFAULT_FACE_BEAM}"),
+            format!("FACE decode f32, batch {b}, masks on: face beam 1 vs {DEFAULT_FACE_BEAM}"),
             format!(
                 "{:.0} vs {:.0} faces/s aggregate ({:.2}x)",
                 rates[0],
@@ -169,31 +275,74 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
             ),
         ]);
     }
+    // A request with the service's defaults: sampled, masks on, no early end of mesh.
+    let request = Decoding {
+        sampling: SamplingParams {
+            temperature: DEFAULT_TEMPERATURE,
+            top_k: None,
+            top_p: None,
+            seed: 7,
+        },
+        constrained: true,
+        face_beam: DEFAULT_FACE_BEAM,
+    };
     let mut cache_rows = Vec::new();
     for &faces in &args.compare {
-        let (face_secs, _, face_cache) = decode_face(&model, &latents, 1, faces, false, 1)?;
-        let (base_secs, base_cache) = decode_baseline(&baseline, &latents, faces)?;
+        let runs = best_of(args.rounds, &variants, |m| {
+            let (secs, n, cache) = decode_face(m, &latents, 1, faces, &request)?;
+            Ok((secs, (n, cache)))
+        })?;
+        // A sequence may stop at a dead end, and the formats at different ones: each result
+        // says how many faces it decoded, the ratio compares faces/s.
+        let rates: Vec<f64> = runs.iter().map(|(s, (n, _))| *n as f64 / s).collect();
+        let result = variants
+            .iter()
+            .zip(&runs)
+            .zip(&rates)
+            .map(|(((q, _), (secs, (n, _))), rate)| {
+                format!("{q} {secs:.2} s for {n} faces ({:.2}x)", rate / rates[0])
+            })
+            .collect::<Vec<_>>()
+            .join(" | ");
         table.add_row(vec![
-            format!("{faces} faces: FACE ({faces} steps) vs per-coordinate ({} steps)", 9 * faces),
             format!(
-                "{:.2} s vs {:.2} s: speedup {:.1}x ({:.0} vs {:.0} faces/s)",
-                face_secs,
-                base_secs,
-                base_secs / face_secs,
-                faces as f64 / face_secs,
-                faces as f64 / base_secs
+                "{faces}-face mesh at batch 1, a default request (T {DEFAULT_TEMPERATURE}, \
+                 masks on), faces/s ratio"
             ),
+            result,
         ]);
-        cache_rows.push((faces, face_cache, base_cache));
+        cache_rows.push((faces, runs[0].1.1, None));
+    }
+    if let Some(baseline) = &baseline {
+        for (faces, _, base) in cache_rows.iter_mut() {
+            let (face_secs, _, _) = decode_face(&model, &latents, 1, *faces, &greedy)?;
+            let (base_secs, base_cache) = decode_baseline(baseline, &latents, *faces)?;
+            table.add_row(vec![
+                format!(
+                    "{faces} faces: FACE ({faces} steps) vs per-coordinate ({} steps)",
+                    9 * *faces
+                ),
+                format!(
+                    "{:.2} s vs {:.2} s: speedup {:.1}x ({:.0} vs {:.0} faces/s)",
+                    face_secs,
+                    base_secs,
+                    base_secs / face_secs,
+                    *faces as f64 / face_secs,
+                    *faces as f64 / base_secs
+                ),
+            ]);
+            *base = Some(base_cache);
+        }
     }
     for (faces, (face_self, face_cross), base_self) in cache_rows {
+        let base = base_self.map(|b| format!("; per-coordinate {} self-attn", mib(b)));
         table.add_row(vec![
             format!("KV cache per sequence at {faces} faces (allocated)"),
             format!(
-                "FACE {} self-attn + {} cross-attn; per-coordinate {} self-attn",
+                "FACE {} self-attn + {} cross-attn{}",
                 mib(face_self),
                 mib(face_cross),
-                mib(base_self)
+                base.unwrap_or_default()
             ),
         ]);
     }

@@ -12,6 +12,7 @@ pub mod decode;
 pub mod eval;
 pub mod generate;
 pub mod healthcheck;
+pub mod quantize;
 pub mod reconstruct;
 pub mod render;
 pub mod sample;
@@ -25,6 +26,8 @@ use candle_core::Device;
 use meshstream::candidates::MAX_CANDIDATES;
 use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
 use meshstream::mesh::{Mesh, Normalization, ReadLimits, read_mesh_file};
+use meshstream::model::quantize::load_quantized;
+use meshstream::model::{FaceModel, Quantize, QuantizeReport};
 
 /// Writes one line of results to stdout. A reader that has gone away (`meshstream eval | head`)
 /// is not an error, as for other Unix tools: the rest of the output has nowhere to go.
@@ -35,6 +38,17 @@ pub fn out(line: impl std::fmt::Display) -> anyhow::Result<()> {
         Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e).context("writing to stdout"),
         _ => Ok(()),
     }
+}
+
+/// Loads the face model in `dir` with its linear layers in `quantize` (a folder with a
+/// quantized model file loads as it was written); the report says which layers stayed f32.
+pub fn load_face_model(
+    dir: &Path,
+    device: &Device,
+    quantize: Quantize,
+) -> anyhow::Result<(FaceModel, QuantizeReport)> {
+    load_quantized(dir, device, quantize)
+        .with_context(|| format!("loading the model in {}", dir.display()))
 }
 
 /// Reads a mesh with the default limits, naming the file in the error.

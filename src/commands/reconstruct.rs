@@ -5,10 +5,10 @@ use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS};
 use meshstream::mesh::{FitOptions, REFERENCE_POINTS, input_clouds};
-use meshstream::model::{checkpoint, parse_device};
+use meshstream::model::{Quantize, parse_device};
 
 use super::decode::{DecodeArgs, FromPoints, decode_to_file};
-use super::{candidate_count, normalized_input, point_count};
+use super::{candidate_count, load_face_model, normalized_input, point_count};
 
 #[derive(Args)]
 pub struct ReconstructArgs {
@@ -51,12 +51,18 @@ pub struct ReconstructArgs {
     /// a larger cloud subsampled.
     #[arg(long, default_value_t = REFERENCE_POINTS, value_parser = point_count())]
     reference_points: usize,
+    /// Number format of the model's linear layers: f32, q8_0 or q4k (quantized when the model
+    /// loads; layers whose inputs do not fit the blocks stay f32).
+    #[arg(long, default_value_t = Quantize::F32)]
+    quantize: Quantize,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let device = parse_device(&args.device)?;
-    let model = checkpoint::load(&args.model, &device)
-        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let (model, report) = load_face_model(&args.model, &device, args.quantize)?;
+    if report.quantize != Quantize::F32 {
+        eprintln!("{report}");
+    }
     let cfg = model.config().clone();
     let (input, normalization) = normalized_input(&args.input)?;
     // A draw of the input's points per candidate (see `meshstream::candidates`).

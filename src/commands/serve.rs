@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
-use meshstream::model::{checkpoint, parse_device};
+use meshstream::model::{Quantize, parse_device};
 use meshstream::server::{
     ApiKeys, AuthConfig, DEFAULT_OPEN_PATHS, ImageServeConfig, InputLimits, Listeners, OpenPath,
     ReadTimeouts, ServeConfig, WholeMeshDefaults, serve,
@@ -17,7 +17,7 @@ use tracing_subscriber::EnvFilter;
 
 use super::out;
 
-use super::{candidate_count, image_model_dir, load_image_model, point_count};
+use super::{candidate_count, image_model_dir, load_face_model, load_image_model, point_count};
 
 #[derive(Clone, Copy, ValueEnum)]
 enum LogFormat {
@@ -75,6 +75,10 @@ pub struct ServeArgs {
     /// Seconds an HTTP client may take to send a request's body (408 after).
     #[arg(long, env = "MESHSTREAM_BODY_READ_TIMEOUT", default_value_t = 60.0)]
     body_read_timeout: f64,
+    /// Number format of the model's linear layers: f32, q8_0 or q4k (quantized when the model
+    /// loads; layers whose inputs do not fit the blocks stay f32).
+    #[arg(long, env = "MESHSTREAM_QUANTIZE", default_value_t = Quantize::F32)]
+    quantize: Quantize,
     /// Threads stepping the running batch (0: one per core).
     #[arg(long, env = "MESHSTREAM_DECODE_THREADS", default_value_t = 0)]
     decode_threads: usize,
@@ -175,8 +179,8 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         tracing::info!(keys = keys.len(), "requests need an API key");
     }
     let device = parse_device(&args.device)?;
-    let model = checkpoint::load(&args.model, &device)
-        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let (model, report) = load_face_model(&args.model, &device, args.quantize)?;
+    tracing::info!("model weights: {report}");
     let image_model = match image_model_dir(&args.model, args.image_model.as_deref()) {
         Some(dir) => {
             Some(load_image_model(&dir, &args.model, args.image_encoder.as_deref(), &device)?)

@@ -5,6 +5,9 @@
 //! picks them only when nothing in its input tracks gradients; while training, the
 //! differentiable formulas run instead. The two paths agree to float rounding.
 
+use std::sync::Arc;
+
+use candle_core::quantized::{GgmlDType, QTensor};
 use candle_core::{D, DType, Device, Tensor};
 use candle_nn::kv_cache::KvCache;
 use candle_nn::{Init, Linear, VarBuilder};
@@ -54,15 +57,28 @@ pub fn softmax(x: &Tensor) -> Result<Tensor> {
 /// A linear layer stored as candle's `Linear` ((out, in) weight named `weight`, optional
 /// `bias`). For inference it keeps a contiguous (in, out) copy instead: the gemm behind
 /// candle's matmul is several times faster on a few rows with that layout than with the
-/// transposed view `Linear` multiplies by.
+/// transposed view `Linear` multiplies by. A quantized layer keeps its weight in a GGUF block
+/// type (see `super::quantize`), multiplied by candle's quantized CPU kernels.
 #[derive(Debug, Clone)]
 pub enum Dense {
     Train(Linear),
-    Infer { weight_t: Tensor, bias: Option<Tensor> },
+    Infer {
+        /// The weight's name without `.weight` (the layer's scope in the checkpoint).
+        name: String,
+        weight_t: Tensor,
+        bias: Option<Tensor>,
+    },
+    Quantized {
+        name: String,
+        /// (out, in), as stored in a GGUF file.
+        weight: Arc<QTensor>,
+        bias: Option<Tensor>,
+    },
 }
 
 impl Dense {
     pub fn new(input: usize, output: usize, bias: bool, vb: VarBuilder) -> Result<Self> {
+        let name = vb.prefix();
         let lin = if bias {
             candle_nn::linear(input, output, vb)?
         } else {
@@ -71,7 +87,76 @@ impl Dense {
         if lin.weight().track_op() {
             return Ok(Self::Train(lin));
         }
-        Ok(Self::Infer { weight_t: lin.weight().t()?.contiguous()?, bias: lin.bias().cloned() })
+        Ok(Self::Infer {
+            name,
+            weight_t: lin.weight().t()?.contiguous()?,
+            bias: lin.bias().cloned(),
+        })
+    }
+
+    /// The layer's scope in the checkpoint (its weight is `{name}.weight`).
+    pub fn name(&self) -> Option<&str> {
+        match self {
+            Self::Train(_) => None,
+            Self::Infer { name, .. } | Self::Quantized { name, .. } => Some(name),
+        }
+    }
+
+    /// (in, out) features.
+    pub fn features(&self) -> Result<(usize, usize)> {
+        Ok(match self {
+            Self::Train(lin) => lin.weight().t()?.dims2()?,
+            Self::Infer { weight_t, .. } => weight_t.dims2()?,
+            Self::Quantized { weight, .. } => {
+                let (out, input) = weight.shape().dims2()?;
+                (input, out)
+            }
+        })
+    }
+
+    /// The quantized weight, if this layer has one.
+    pub fn quantized_weight(&self) -> Option<&Arc<QTensor>> {
+        match self {
+            Self::Quantized { weight, .. } => Some(weight),
+            _ => None,
+        }
+    }
+
+    /// Quantizes an inference layer's weight to `dtype`. Returns false, leaving the layer as
+    /// it is, when its input features are not a multiple of the block size (a block never
+    /// spans two rows of the weight).
+    pub fn quantize(&mut self, dtype: GgmlDType) -> Result<bool> {
+        let Self::Infer { name, weight_t, bias } = self else {
+            return Err(ModelError::bad_input(format!(
+                "only an f32 inference layer can be quantized ({})",
+                self.name().unwrap_or("a training layer")
+            )));
+        };
+        if weight_t.dim(0)? % dtype.block_size() != 0 {
+            return Ok(false);
+        }
+        let weight = Arc::new(QTensor::quantize(&weight_t.t()?.contiguous()?, dtype)?);
+        *self = Self::Quantized { name: std::mem::take(name), weight, bias: bias.take() };
+        Ok(true)
+    }
+
+    /// Replaces an inference layer's weight by an already quantized one of the same shape
+    /// (read from a quantized model file).
+    pub fn set_quantized(&mut self, weight: Arc<QTensor>) -> Result<()> {
+        let (input, output) = self.features()?;
+        let Self::Infer { name, bias, .. } = self else {
+            return Err(ModelError::bad_input(
+                "only an f32 inference layer takes a quantized weight",
+            ));
+        };
+        if weight.shape().dims() != [output, input] {
+            return Err(ModelError::bad_input(format!(
+                "quantized weight {:?} for {name}, which is ({output}, {input})",
+                weight.shape().dims()
+            )));
+        }
+        *self = Self::Quantized { name: std::mem::take(name), weight, bias: bias.take() };
+        Ok(())
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
@@ -90,17 +175,26 @@ impl Dense {
                 out_dims[dims.len() - 1] = y.dim(1)?;
                 Ok(y.reshape(out_dims)?)
             }
-            Self::Infer { weight_t, bias } => {
+            Self::Infer { weight_t, bias, .. } => {
                 // CUDA's matmul takes only row- or column-major operands; a context built by
                 // concatenating narrowed tensors is neither (the CPU takes any layout).
                 let y = x.contiguous()?.broadcast_matmul(weight_t)?;
-                Ok(match bias {
-                    Some(b) => y.broadcast_add(b)?,
-                    None => y,
-                })
+                add_bias(y, bias.as_ref())
+            }
+            Self::Quantized { weight, bias, .. } => {
+                // What `QMatMul::forward` does for a quantized weight, without wrapping it.
+                let y = x.contiguous()?.apply_op1_no_bwd(weight.as_ref())?;
+                add_bias(y, bias.as_ref())
             }
         }
     }
+}
+
+fn add_bias(y: Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    Ok(match bias {
+        Some(b) => y.broadcast_add(b)?,
+        None => y,
+    })
 }
 
 /// Two linear layers with a SiLU between (candle's GELU kernels cost ten times as much on the
@@ -121,6 +215,10 @@ impl Mlp {
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.fc2.forward(&self.fc1.forward(x)?.silu()?)
+    }
+
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        vec![&mut self.fc1, &mut self.fc2]
     }
 }
 
@@ -172,19 +270,35 @@ impl Rope {
         }
     }
 
-    /// `x`: (B, H, 1, hd), row `r` at position `positions[r]`.
-    pub fn apply_rows(&self, x: &Tensor, positions: &[usize]) -> Result<Tensor> {
+    /// The tables' rows at `positions` (row `r` of a batch at `positions[r]`), looked up once
+    /// per decoder step for every layer's queries and keys.
+    pub fn rows(&self, positions: &[usize]) -> Result<RopeRows> {
         if let Some(&p) = positions.iter().max() {
             self.check(p)?;
         }
         let idx: Vec<u32> = positions.iter().map(|&p| p as u32).collect();
-        let idx = Tensor::from_vec(idx, positions.len(), x.device())?;
-        let cos = self.cos.index_select(&idx, 0)?.unsqueeze(1)?;
-        let sin = self.sin.index_select(&idx, 0)?.unsqueeze(1)?;
+        let idx = Tensor::from_vec(idx, positions.len(), self.cos.device())?;
+        Ok(RopeRows {
+            cos: self.cos.index_select(&idx, 0)?.unsqueeze(1)?,
+            sin: self.sin.index_select(&idx, 0)?.unsqueeze(1)?,
+        })
+    }
+}
+
+/// Rotary tables for one position per batch row: (B, 1, hd/2) each.
+#[derive(Debug, Clone)]
+pub struct RopeRows {
+    cos: Tensor,
+    sin: Tensor,
+}
+
+impl RopeRows {
+    /// `x`: (B, H, 1, hd).
+    pub fn apply(&self, x: &Tensor) -> Result<Tensor> {
         if x.track_op() {
-            rope_differentiable(x, &cos, &sin)
+            rope_differentiable(x, &self.cos, &self.sin)
         } else {
-            Ok(candle_nn::rotary_emb::rope(&x.contiguous()?, &cos, &sin)?)
+            Ok(candle_nn::rotary_emb::rope(&x.contiguous()?, &self.cos, &self.sin)?)
         }
     }
 }
@@ -250,6 +364,10 @@ impl SelfAttention {
         })
     }
 
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        vec![&mut self.qkv, &mut self.out]
+    }
+
     fn project(&self, x: &Tensor) -> Result<(Tensor, Tensor, Tensor)> {
         let (b, t, d) = x.dims3()?;
         let hd = d / self.heads;
@@ -273,18 +391,12 @@ impl SelfAttention {
         self.out.forward(&merge_heads(&attend(&q, &k, &v, mask)?)?)
     }
 
-    /// One new position per row: x (B, 1, d); row `r` is at `positions[r]` and owns `caches[r]`,
-    /// which this call extends by one entry.
-    pub fn step(
-        &self,
-        x: &Tensor,
-        rope: &Rope,
-        positions: &[usize],
-        caches: &mut [&mut KvCache],
-    ) -> Result<Tensor> {
+    /// One new position per row: x (B, 1, d); row `r` is at the position `rope` was looked up
+    /// for and owns `caches[r]`, which this call extends by one entry.
+    pub fn step(&self, x: &Tensor, rope: &RopeRows, caches: &mut [&mut KvCache]) -> Result<Tensor> {
         let (q, k, v) = self.project(x)?;
-        let q = rope.apply_rows(&q, positions)?;
-        let k = rope.apply_rows(&k, positions)?;
+        let q = rope.apply(&q)?;
+        let k = rope.apply(&k)?;
         let kv = caches
             .iter_mut()
             .enumerate()
@@ -314,6 +426,10 @@ impl CrossAttention {
             out: Dense::new(dim, dim, false, vb.pp("out"))?,
             heads,
         })
+    }
+
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        vec![&mut self.q, &mut self.kv, &mut self.out]
     }
 
     /// Keys and values of a memory (B, K, d): two (B, H, K, hd) tensors.
@@ -374,9 +490,8 @@ mod tests {
     fn positions_past_the_table_are_an_error() {
         let dev = Device::Cpu;
         let rope = Rope::new(4, 3, 10_000.0, &dev).unwrap();
-        let x = Tensor::zeros((1, 1, 1, 4), DType::F32, &dev).unwrap();
         assert!(matches!(
-            rope.apply_rows(&x, &[3]),
+            rope.rows(&[3]),
             Err(ModelError::SequenceTooLong { position: 3, limit: 3 })
         ));
     }

@@ -34,7 +34,7 @@ pub fn inference_model(cfg: &FaceConfig, varmap: &VarMap, device: &Device) -> Re
     FaceModel::new(cfg, vb)
 }
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
     move |error| ModelError::Io { path: path.to_path_buf(), error }
 }
 
@@ -237,9 +237,21 @@ impl SimpleBackend for CheckedBackend {
 
 /// Loads an inference model from `dir`. Every tensor the config needs must be there with the
 /// right shape, and no other tensor may be.
+/// A folder with a quantized model file (`model.gguf`, see [`super::quantize`]) loads with its
+/// linear layers quantized as they were written.
 pub fn load(dir: &Path, device: &Device) -> Result<FaceModel> {
+    if super::quantize::is_quantized_dir(dir) {
+        return Ok(super::quantize::load_quantized(dir, device, Default::default())?.0);
+    }
     let cfg = load_config(dir)?;
-    build_checked(dir, device, |vb| FaceModel::new(&cfg, vb))
+    load_with_config(dir, &cfg, device)
+}
+
+/// [`load`] of the f32 weights in `dir` with a config edited by the caller (a longer
+/// `max_faces`, say: the rotary positions are computed, not learned).
+pub fn load_with_config(dir: &Path, cfg: &FaceConfig, device: &Device) -> Result<FaceModel> {
+    cfg.validate()?;
+    build_checked(dir, device, |vb| FaceModel::new(cfg, vb))
 }
 
 /// Runs `build` on the weights in `dir` with the checks of [`load`]: the first missing or
@@ -250,6 +262,17 @@ pub(crate) fn build_checked<M>(
     build: impl FnOnce(VarBuilder) -> Result<M>,
 ) -> Result<M> {
     let ModelWeights { path, tensors } = read_model_weights(dir, device)?;
+    build_from_tensors(&path, tensors, device, build)
+}
+
+/// [`build_checked`] on tensors already read from `path`.
+pub(crate) fn build_from_tensors<M>(
+    path: &Path,
+    tensors: HashMap<String, Tensor>,
+    device: &Device,
+    build: impl FnOnce(VarBuilder) -> Result<M>,
+) -> Result<M> {
+    let path = path.to_path_buf();
     let names: Vec<String> = tensors.keys().cloned().collect();
     let backend = std::sync::Arc::new(CheckedTensors {
         tensors,

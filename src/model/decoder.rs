@@ -33,6 +33,13 @@ impl DecoderLayer {
             mlp: Mlp::new(d.width, d.mlp_hidden, d.width, vb.pp("mlp"))?,
         })
     }
+
+    fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = self.self_attn.dense_mut();
+        layers.extend(self.cross_attn.dense_mut());
+        layers.extend(self.mlp.dense_mut());
+        layers
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -59,6 +66,13 @@ impl DecoderStack {
             latent_dim: cfg.latent_dim,
             width: d.width,
         })
+    }
+
+    /// Every linear layer, in checkpoint order.
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = vec![&mut self.latent_up];
+        layers.extend(self.layers.iter_mut().flat_map(DecoderLayer::dense_mut));
+        layers
     }
 
     pub fn max_positions(&self) -> usize {
@@ -153,12 +167,13 @@ impl DecoderStack {
         if let Some(&p) = positions.iter().find(|&&p| p >= self.max_positions()) {
             return Err(ModelError::SequenceTooLong { position: p, limit: self.max_positions() });
         }
+        let rope = self.rope.rows(&positions)?;
         let mut x = x.clone();
         for (i, l) in self.layers.iter().enumerate() {
             let h = l.self_norm.forward(&x)?;
             let mut kv: Vec<&mut KvCache> =
                 caches.iter_mut().map(|c| &mut c.layers[i].self_kv).collect();
-            x = (&x + l.self_attn.step(&h, &self.rope, &positions, &mut kv)?)?;
+            x = (&x + l.self_attn.step(&h, &rope, &mut kv)?)?;
             // Cheap handles (reference-counted storage), not copies.
             let memories: Vec<(Tensor, Tensor)> = caches
                 .iter()

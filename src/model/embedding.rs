@@ -6,7 +6,7 @@ use candle_core::{DType, Tensor};
 use candle_nn::{Embedding, VarBuilder};
 
 use super::Result;
-use super::attention::Mlp;
+use super::attention::{Dense, Mlp};
 use super::config::{COORDS_PER_FACE, FaceConfig};
 
 #[derive(Debug, Clone)]
@@ -79,6 +79,10 @@ impl FacePooling {
     pub fn new(cfg: &FaceConfig, vb: VarBuilder) -> Result<Self> {
         let d = cfg.decoder.width;
         Ok(Self { mlp: Mlp::new(COORDS_PER_FACE * cfg.coord_embed_dim, d, d, vb)? })
+    }
+
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        self.mlp.dense_mut()
     }
 
     /// embedded faces (..., 9 * dim) -> (..., d_model).

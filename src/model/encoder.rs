@@ -30,6 +30,12 @@ impl EncoderBlock {
         })
     }
 
+    fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = self.attn.dense_mut();
+        layers.extend(self.mlp.dense_mut());
+        layers
+    }
+
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let x = (x + self.attn.forward(&self.attn_norm.forward(x)?, None, None)?)?;
         Ok((&x + self.mlp.forward(&self.mlp_norm.forward(&x)?)?)?)
@@ -56,6 +62,12 @@ impl QueryBlock {
             mlp_norm: Norm::new(e.width, cfg.norm_eps, vb.pp("mlp_norm"))?,
             mlp: Mlp::new(e.width, e.mlp_hidden, e.width, vb.pp("mlp"))?,
         })
+    }
+
+    fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = self.attn.dense_mut();
+        layers.extend(self.mlp.dense_mut());
+        layers
     }
 
     fn forward(&self, queries: &Tensor, points: &Tensor) -> Result<Tensor> {
@@ -128,6 +140,15 @@ impl ShapeEncoder {
             kind: cfg.bottleneck,
             latent_dim: cfg.latent_dim,
         })
+    }
+
+    /// Every linear layer, in checkpoint order.
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = vec![&mut self.point_embed];
+        layers.extend(self.query_block.dense_mut());
+        layers.extend(self.layers.iter_mut().flat_map(EncoderBlock::dense_mut));
+        layers.push(&mut self.bottleneck);
+        layers
     }
 
     /// points, normals: (B, M, 3) f32; query_indices: (B, K) u32 indices into the M points

@@ -5,6 +5,7 @@
 use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{Init, VarBuilder};
 
+use super::attention::Dense;
 use super::cache::DecoderCache;
 use super::config::{COORDS_PER_FACE, FaceConfig};
 use super::decoder::DecoderStack;
@@ -117,6 +118,15 @@ impl FaceModel {
 
     pub fn config(&self) -> &FaceConfig {
         &self.cfg
+    }
+
+    /// Every linear layer: the encoder's, the face pooling's, the decoder's and the head's.
+    pub(crate) fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        let mut layers = self.encoder.dense_mut();
+        layers.extend(self.pooling.dense_mut());
+        layers.extend(self.stack.dense_mut());
+        layers.extend(self.head.dense_mut());
+        layers
     }
 
     pub fn device(&self) -> &Device {

@@ -5,7 +5,7 @@
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
 
-use super::attention::Mlp;
+use super::attention::{Dense, Mlp};
 use super::config::{COORDS_PER_FACE, FaceConfig};
 use super::{ModelError, Result};
 
@@ -26,6 +26,10 @@ impl CausalHead {
             })
             .collect::<Result<_>>()?;
         Ok(Self { sub_heads, width: d, coord_dim: dc })
+    }
+
+    pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        self.sub_heads.iter_mut().flat_map(Mlp::dense_mut).collect()
     }
 
     /// context (..., d + j * coord_dim) -> logits (..., Q), or (..., Q + 1) for j = 0 where the

@@ -56,6 +56,7 @@ mod fourier;
 mod generate;
 mod head;
 mod input;
+pub mod quantize;
 mod ragged;
 mod sampling;
 #[cfg(test)]
@@ -75,6 +76,7 @@ pub use generate::{
     MAX_FACE_BEAM, StepEvent, generate, step_generations,
 };
 pub use input::PointCloudInput;
+pub use quantize::{Quantize, QuantizeReport};
 pub use sampling::{Sampler, SamplingParams};
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
