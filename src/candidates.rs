@@ -7,10 +7,12 @@
 //! to the input points, recover much of that (measured in `docs/decisions.md`, "Decoding").
 //! The candidates decode as one batch, so N of them cost less than N single decodes.
 
+use std::sync::Arc;
+
 use candle_core::Tensor;
 use rayon::prelude::*;
 
-use crate::mesh::{FitOptions, Mesh, fit_to_points, sample_surface};
+use crate::mesh::{FitOptions, FitTarget, Mesh, fit_to_target, sample_surface};
 use crate::metrics::point_set_distances;
 use crate::model::{
     FaceModel, FaceToken, FinishReason, GenerateOptions, Generation, ModelError, SamplingParams,
@@ -144,6 +146,63 @@ pub struct Finished {
     /// What the reconstruction returns: `decoded` fitted to the input ([`fitted_mesh`]), or
     /// `decoded` itself when not fitted.
     pub mesh: Mesh,
+    /// How far it ends from the input points ([`input_distance`]); 0 when it is not judged.
+    pub distance: f64,
+}
+
+/// How one reconstruction ends its candidates (welded, then fitted to its input points when
+/// asked) and judges them: prepared once, so that every candidate fits to the same prepared
+/// points, and each candidate can be ended on its own as soon as it is decoded.
+pub struct Judge {
+    q: Quantizer,
+    cloud: Arc<Mesh>,
+    ending: Ending,
+    /// The prepared cloud when fitting; `None` also for a cloud that cannot be fitted to
+    /// (the candidates then end as decoded).
+    target: Option<FitTarget>,
+    seed: u64,
+    /// One candidate has nothing to be compared with, and is not judged.
+    compare: bool,
+}
+
+impl Judge {
+    /// For `candidates` candidates judged against `cloud` (normalized frame) with `seed`.
+    pub fn new(
+        q: Quantizer,
+        cloud: Arc<Mesh>,
+        ending: Ending,
+        seed: u64,
+        candidates: usize,
+    ) -> Self {
+        let target = ending.fit.and_then(|_| match FitTarget::new(&cloud) {
+            Ok(target) => Some(target),
+            Err(e) => {
+                tracing::debug!("the candidates are not fitted: {e}");
+                None
+            }
+        });
+        Self { q, cloud, ending, target, seed, compare: candidates > 1 }
+    }
+
+    /// Candidate `index` with `faces`, ended and judged.
+    pub fn end(&self, index: usize, faces: &[FaceToken]) -> Finished {
+        let decoded = detokenize(&weld_near_corners(faces, self.ending.weld_radius), self.q);
+        let mesh = match (&self.ending.fit, &self.target) {
+            (Some(fit), Some(target)) => fitted_mesh(&decoded, self.q, target, fit, self.seed),
+            _ => decoded.clone(),
+        };
+        let distance =
+            if self.compare { input_distance(&mesh, &self.cloud.vertices, self.seed) } else { 0.0 };
+        Finished { index, decoded, mesh, distance }
+    }
+}
+
+/// The finished candidate closest to the input points: the first (lowest index) on ties.
+pub fn closest(finished: impl IntoIterator<Item = Finished>) -> Option<Finished> {
+    finished.into_iter().reduce(|best, next| {
+        let nearer = (next.distance, next.index) < (best.distance, best.index);
+        if nearer { next } else { best }
+    })
 }
 
 /// Ends each candidate as `ending` says (welded, then fitted to `cloud` when asked) and keeps
@@ -159,41 +218,29 @@ pub fn closest_finished<'a>(
     ending: &Ending,
     seed: u64,
 ) -> Option<Finished> {
-    let judge = candidates.len() > 1; // one has nothing to be compared with
-    // Each candidate's fit and judgement is its own: they run in parallel, and the fold
-    // after them keeps the first on ties.
+    let judge = Judge::new(q, Arc::new(cloud.clone()), *ending, seed, candidates.len());
+    // Each candidate's fit and judgement is its own: they run in parallel.
     let candidates: Vec<&[FaceToken]> = candidates.collect();
-    let ended: Vec<(f64, Finished)> = candidates
+    let ended: Vec<Finished> = candidates
         .into_par_iter()
         .enumerate()
-        .map(|(index, faces)| {
-            let decoded = detokenize(&weld_near_corners(faces, ending.weld_radius), q);
-            let mesh = match &ending.fit {
-                Some(fit) => fitted_mesh(&decoded, q, cloud, fit, seed),
-                None => decoded.clone(),
-            };
-            let distance = if judge { input_distance(&mesh, &cloud.vertices, seed) } else { 0.0 };
-            (distance, Finished { index, decoded, mesh })
-        })
+        .map(|(index, faces)| judge.end(index, faces))
         .collect();
-    ended
-        .into_iter()
-        .reduce(|best, next| if next.0 < best.0 { next } else { best })
-        .map(|(_, finished)| finished)
+    closest(ended)
 }
 
-/// The `decoded` mesh (normalized frame) with its corners fitted to the input `cloud` (see
-/// [`fit_to_points`]) and its flat polygons split again for the moved corners (see
+/// The `decoded` mesh (normalized frame) with its corners fitted to the input `target` (see
+/// [`fit_to_target`]) and its flat polygons split again for the moved corners (see
 /// [`canonical_triangulation_near_grid`]; vertices keep their order). A mesh with no area
 /// has nothing to fit and comes as decoded.
 pub fn fitted_mesh(
     decoded: &Mesh,
     q: Quantizer,
-    cloud: &Mesh,
+    target: &FitTarget,
     options: &FitOptions,
     seed: u64,
 ) -> Mesh {
-    match fit_to_points(decoded, cloud, options, seed) {
+    match fit_to_target(decoded, target, options, seed) {
         Ok(fitted) => canonical_triangulation_near_grid(&fitted, q),
         Err(e) => {
             tracing::debug!("the mesh is not fitted: {e}");
@@ -313,6 +360,21 @@ mod tests {
         // One candidate is not judged: it ends as it is, whatever it is.
         let alone = closest_finished([&[][..]].into_iter(), q, &cloud, &as_decoded, 0).unwrap();
         assert_eq!(alone.index, 0);
+    }
+
+    #[test]
+    fn the_closest_wins_and_the_first_on_ties_in_any_order_of_finishing() {
+        let q = Quantizer::new(128).unwrap();
+        let finished = |index, distance| Finished {
+            index,
+            decoded: detokenize(&[], q),
+            mesh: detokenize(&[], q),
+            distance,
+        };
+        let pick = |all: Vec<Finished>| closest(all).map(|f| f.index);
+        assert_eq!(pick(vec![finished(2, 0.5), finished(1, 0.3), finished(0, 0.3)]), Some(0));
+        assert_eq!(pick(vec![finished(0, f64::INFINITY), finished(1, 0.9)]), Some(1));
+        assert_eq!(pick(vec![]), None);
     }
 
     #[test]

@@ -1,15 +1,18 @@
-//! `meshstream bench serve`: a load generator against a real server in this process (gRPC
-//! streams over loopback), at several concurrency levels.
+//! `meshstream bench serve`: a load generator against a real server in this process over
+//! loopback, at several concurrency levels: whole meshes over HTTP (as a client that does not
+//! ask for a stream gets them, with the server's defaults: candidates, welding, fitting) and
+//! face streams over gRPC. Running servers (another build, say) can be measured in the same
+//! run, level by level in turn with this one.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
-use clap::Args;
+use anyhow::{Context, bail};
+use clap::{Args, ValueEnum};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
-use meshstream::mesh::{REFERENCE_POINTS, ReadLimits};
+use meshstream::mesh::{Mesh, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{Options, ReconstructRequest, reconstruct_response};
@@ -31,11 +34,14 @@ pub struct ServeBenchArgs {
     /// Concurrent clients, one level per row.
     #[arg(long, value_delimiter = ',', default_values_t = [1, 4, 16])]
     concurrency: Vec<usize>,
+    /// What clients ask for.
+    #[arg(long, value_delimiter = ',', default_values_t = [Interface::Whole, Interface::Stream])]
+    interface: Vec<Interface>,
     /// Requests each client sends, one after the other.
     #[arg(long, default_value_t = 4)]
     requests_per_client: usize,
     /// Face budget of each request.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 300)]
     max_faces: u32,
     /// Sampling temperature of each request (0: greedy decoding with `--face-beam`).
     #[arg(long, default_value_t = DEFAULT_TEMPERATURE)]
@@ -46,23 +52,59 @@ pub struct ServeBenchArgs {
     /// The engine's decode threads (0: one per core).
     #[arg(long, default_value_t = 0)]
     decode_threads: usize,
+    /// A running server's HTTP address (host:port) whose whole meshes are measured too, at
+    /// each level right after this build's; repeat for more. Start it with the same model
+    /// and a long --queue-timeout.
+    #[arg(long = "also-http")]
+    also_http: Vec<SocketAddr>,
+}
+
+/// What a client asks for.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Interface {
+    /// `POST /reconstruct` answered with a whole mesh (GLB): every face comes at the end.
+    Whole,
+    /// gRPC `Reconstruct`: faces streamed as they are decoded.
+    Stream,
+}
+
+impl std::fmt::Display for Interface {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Whole => "whole",
+            Self::Stream => "stream",
+        })
+    }
 }
 
 /// What one request saw.
 struct Sample {
     faces: usize,
     time_to_first_face: Option<Duration>,
+    total: Duration,
+}
+
+/// One level of one server and interface.
+struct Level {
+    samples: Vec<Sample>,
+    wall: Duration,
+}
+
+impl Level {
+    fn faces_per_second(&self) -> f64 {
+        self.samples.iter().map(|s| s.faces).sum::<usize>() as f64 / self.wall.as_secs_f64()
+    }
 }
 
 pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     let device = parse_device(&args.device)?;
     let model = checkpoint::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
-    let max_level = args.concurrency.iter().copied().max().unwrap_or(1);
+    // The shipped engine settings: a level past `max_running` queues, as a server's would,
+    // but for as long as it takes (a loaded machine is measured, not refused).
     let config = EngineConfig {
-        max_running: max_level,
-        max_queue: max_level * 2,
         decode_threads: args.decode_threads,
+        queue_timeout: Duration::from_secs(600),
         ..EngineConfig::default()
     };
     let engine = Engine::start(model, None, config, Arc::new(Metrics::default()))?;
@@ -89,51 +131,64 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     runtime.block_on(async {
         let listeners = Listeners::bind(&serve_config).await?;
         let grpc = listeners.grpc_addr().context("no gRPC address")?;
+        let http = listeners.http_addr().context("no HTTP address")?;
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let server = tokio::spawn(serve(engine, serve_config, listeners, async {
             let _ = stopped.await;
         }));
-        let request = request(args);
+        let cloud = test_cloud(4096);
         let mut table = super::table();
         table.set_header([
+            "interface",
+            "server",
             "clients",
             "requests",
             "faces",
-            "throughput (faces/s)",
+            "faces/s",
             "vs 1 client",
-            "time to first face p50",
+            "vs this build",
+            "first face p50",
             "p99",
+            "answer p50",
         ]);
-        let mut single = None;
-        for &clients in &args.concurrency {
-            let t0 = Instant::now();
-            let tasks: Vec<_> = (0..clients)
-                .map(|_| {
-                    let request = request.clone();
-                    let n = args.requests_per_client;
-                    tokio::spawn(async move { client(grpc, request, n).await })
-                })
-                .collect();
-            let mut samples = Vec::new();
-            for t in tasks {
-                samples.extend(t.await??);
+        for &interface in &args.interface {
+            let servers: Vec<(String, SocketAddr)> = match interface {
+                Interface::Whole => std::iter::once(("this build".to_string(), http))
+                    .chain(args.also_http.iter().map(|a| (a.to_string(), *a)))
+                    .collect(),
+                Interface::Stream => vec![("this build".to_string(), grpc)],
+            };
+            let mut single: Vec<Option<f64>> = vec![None; servers.len()];
+            for &clients in &args.concurrency {
+                let mut this_build = None;
+                for (i, (name, addr)) in servers.iter().enumerate() {
+                    let level = match interface {
+                        Interface::Whole => whole_level(*addr, &cloud, args, clients).await?,
+                        Interface::Stream => stream_level(*addr, &cloud, args, clients).await?,
+                    };
+                    let throughput = level.faces_per_second();
+                    let one = *single[i].get_or_insert(throughput);
+                    let this = *this_build.get_or_insert(throughput);
+                    let mut row = vec![
+                        interface.to_string(),
+                        name.clone(),
+                        clients.to_string(),
+                        level.samples.len().to_string(),
+                        level.samples.iter().map(|s| s.faces).sum::<usize>().to_string(),
+                        format!("{throughput:.0}"),
+                        format!("{:.2}x", throughput / one),
+                        format!("{:.2}x", throughput / this),
+                    ];
+                    let mut first: Vec<Duration> =
+                        level.samples.iter().filter_map(|s| s.time_to_first_face).collect();
+                    let mut total: Vec<Duration> = level.samples.iter().map(|s| s.total).collect();
+                    first.sort();
+                    total.sort();
+                    row.extend([percentile_ms(&first, 0.5), percentile_ms(&first, 0.99)]);
+                    row.push(percentile_ms(&total, 0.5));
+                    table.add_row(row);
+                }
             }
-            let wall = t0.elapsed().as_secs_f64();
-            let faces: usize = samples.iter().map(|s| s.faces).sum();
-            let throughput = faces as f64 / wall;
-            let base = *single.get_or_insert(throughput);
-            let mut ttff: Vec<Duration> =
-                samples.iter().filter_map(|s| s.time_to_first_face).collect();
-            ttff.sort();
-            table.add_row([
-                clients.to_string(),
-                samples.len().to_string(),
-                faces.to_string(),
-                format!("{throughput:.0}"),
-                format!("{:.2}x", throughput / base),
-                percentile_ms(&ttff, 0.5),
-                percentile_ms(&ttff, 0.99),
-            ]);
         }
         let _ = stop.send(());
         server.await??;
@@ -142,19 +197,33 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     })
 }
 
-/// The test shape's points, with this run's options.
-fn request(args: &ServeBenchArgs) -> ReconstructRequest {
+/// `clients` clients each asking `addr` over gRPC for streams, one after the other.
+async fn stream_level(
+    addr: SocketAddr,
+    cloud: &Mesh,
+    args: &ServeBenchArgs,
+    clients: usize,
+) -> anyhow::Result<Level> {
     let options = Options {
         max_faces: Some(args.max_faces),
         temperature: Some(args.temperature),
         face_beam: Some(args.face_beam),
         ..Options::default()
     };
-    points_request(&test_cloud(4096), options)
+    let request = points_request(cloud, options);
+    let t0 = Instant::now();
+    let tasks: Vec<_> = (0..clients)
+        .map(|_| tokio::spawn(stream_client(addr, request.clone(), args.requests_per_client)))
+        .collect();
+    let mut samples = Vec::new();
+    for t in tasks {
+        samples.extend(t.await??);
+    }
+    Ok(Level { samples, wall: t0.elapsed() })
 }
 
 /// Sends `n` requests one after the other and reads each stream to its end.
-async fn client(
+async fn stream_client(
     addr: SocketAddr,
     request: ReconstructRequest,
     n: usize,
@@ -164,14 +233,75 @@ async fn client(
     for _ in 0..n {
         let t0 = Instant::now();
         let mut stream = grpc.reconstruct(request.clone()).await?.into_inner();
-        let mut sample = Sample { faces: 0, time_to_first_face: None };
+        let (mut faces, mut time_to_first_face) = (0, None);
         while let Some(message) = stream.message().await? {
             if let Some(reconstruct_response::Event::Faces(chunk)) = message.event {
-                sample.time_to_first_face.get_or_insert_with(|| t0.elapsed());
-                sample.faces += chunk.faces.len();
+                time_to_first_face.get_or_insert_with(|| t0.elapsed());
+                faces += chunk.faces.len();
             }
         }
-        samples.push(sample);
+        samples.push(Sample { faces, time_to_first_face, total: t0.elapsed() });
     }
     Ok(samples)
+}
+
+/// `clients` clients each asking `addr` over HTTP for whole meshes, one after the other.
+async fn whole_level(
+    addr: SocketAddr,
+    cloud: &Mesh,
+    args: &ServeBenchArgs,
+    clients: usize,
+) -> anyhow::Result<Level> {
+    let body = serde_json::to_vec(&serde_json::json!({
+        "points": cloud.vertices,
+        "normals": cloud.normals,
+        "max_faces": args.max_faces,
+        "temperature": args.temperature,
+        "face_beam": args.face_beam,
+    }))?;
+    let url = format!("http://{addr}/reconstruct");
+    // A connection per client, as separate clients have.
+    let n = args.requests_per_client;
+    let t0 = Instant::now();
+    let tasks: Vec<_> = (0..clients)
+        .map(|_| {
+            let (url, body) = (url.clone(), body.clone());
+            tokio::spawn(async move {
+                let client = reqwest::Client::new();
+                let mut samples = Vec::with_capacity(n);
+                for _ in 0..n {
+                    samples.push(whole_mesh(&client, &url, body.clone()).await?);
+                }
+                anyhow::Ok(samples)
+            })
+        })
+        .collect();
+    let mut samples = Vec::new();
+    for t in tasks {
+        samples.extend(t.await??);
+    }
+    Ok(Level { samples, wall: t0.elapsed() })
+}
+
+/// One `POST /reconstruct` of `body` (JSON points) answered with a whole mesh.
+async fn whole_mesh(client: &reqwest::Client, url: &str, body: Vec<u8>) -> anyhow::Result<Sample> {
+    let t0 = Instant::now();
+    let answer = client
+        .post(url)
+        .header("content-type", "application/json")
+        .body(body)
+        .send()
+        .await
+        .with_context(|| format!("asking {url}"))?;
+    let status = answer.status();
+    let faces = answer.headers().get("x-meshstream-faces").cloned();
+    let bytes = answer.bytes().await?;
+    let total = t0.elapsed();
+    if !status.is_success() {
+        bail!("{url} answered {status}: {}", String::from_utf8_lossy(&bytes).trim());
+    }
+    let faces = faces
+        .and_then(|v| v.to_str().ok()?.parse().ok())
+        .context("the answer has no x-meshstream-faces header")?;
+    Ok(Sample { faces, time_to_first_face: Some(total), total })
 }

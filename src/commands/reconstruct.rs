@@ -46,6 +46,10 @@ pub struct ReconstructArgs {
     /// The furthest fitting may move a corner, in units of half the input's longest side.
     #[arg(long, default_value_t = FitOptions::default().max_shift)]
     fit_max_shift: f32,
+    /// A fit ends before --fit-rounds once this many rounds in a row moved its corners no
+    /// less on average than an earlier round had; 0 runs every round.
+    #[arg(long, default_value_t = FitOptions::default().patience)]
+    fit_patience: usize,
     /// The most input points the candidates are judged and the corners fitted against (the
     /// encoder takes the model's num_points of them): a mesh's surface is sampled this often,
     /// a larger cloud subsampled.
@@ -84,6 +88,7 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let fit = FitOptions {
         rounds: args.fit_rounds,
         max_shift: args.fit_max_shift,
+        patience: args.fit_patience,
         ..FitOptions::default()
     };
     let ending = Ending { weld_radius: args.weld_radius, fit: (fit.rounds > 0).then_some(fit) };

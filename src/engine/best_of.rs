@@ -5,13 +5,14 @@
 //! welded and its corners fitted to those points when asked. Its faces therefore arrive
 //! together at the end, not one by one.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{Ending, Finished, candidate_sampling, closest_finished};
-use crate::mesh::{FitOptions, Mesh};
+use crate::candidates::{Ending, Finished, Judge, candidate_sampling};
+use crate::mesh::FitOptions;
 use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
@@ -69,21 +70,34 @@ pub(super) fn submit(
     let (tx, rx) = mpsc::channel(engine.shared.config.stream_buffer);
     let q = engine.quantizer;
     runtime.spawn(async move {
-        let finished = tokio::select! {
-            all = join_all(candidates.into_iter().map(RequestStream::collect)) => all,
+        // Prepared while the candidates decode.
+        let judge = match off_runtime(move || Judge::new(q, cloud, ending, seed, n)).await {
+            Ok(judge) => Arc::new(judge),
+            Err(e) => {
+                let _ = tx.send(Event::Failed(e)).await;
+                return;
+            }
+        };
+        // Each candidate is ended as soon as it is decoded, while the others still decode.
+        let ended = candidates.into_iter().enumerate().map(|(index, candidate)| {
+            let judge = judge.clone();
+            async move {
+                let completed = candidate.collect().await?;
+                off_runtime(move || {
+                    let finished = judge.end(index, &completed.tokens);
+                    (completed, finished)
+                })
+                .await
+            }
+        });
+        let ended = tokio::select! {
+            all = join_all(ended) => all,
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
-        // Fitting and judging are CPU work: off the async runtime.
-        let chosen = tokio::task::spawn_blocking(move || {
-            let (best, ended) = pick(finished, q, &cloud, &ending, seed)?;
-            Ok((best, ended_faces(&ended, q)))
-        })
-        .await
-        .unwrap_or_else(|e| Err(EngineError::Model(format!("choosing a candidate failed: {e}"))));
-        let event = match chosen {
-            Ok((mut best, faces)) => {
-                for (index, (token, corners)) in faces.into_iter().enumerate() {
+        let event = match pick(ended) {
+            Ok((mut best, ended)) => {
+                for (index, (token, corners)) in ended_faces(&ended, q).into_iter().enumerate() {
                     let vertices = corners.map(|p| normalization.invert(p));
                     let face = StreamedFace { index, token, vertices };
                     if tx.send(Event::Face(face)).await.is_err() {
@@ -100,6 +114,19 @@ pub(super) fn submit(
         let _ = tx.send(event).await;
     });
     Ok(RequestStream::new(request.id, rx))
+}
+
+/// Runs CPU work (fitting and judging a candidate) on rayon's pool, one thread per core, off
+/// the async runtime: however many candidates finish together, they queue there rather than
+/// each taking a thread of their own from the decoding.
+async fn off_runtime<T: Send + 'static>(
+    work: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, EngineError> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    rayon::spawn(move || {
+        let _ = tx.send(work());
+    });
+    rx.await.map_err(|_| EngineError::Model("ending a candidate failed".into()))
 }
 
 /// The faces to stream for a candidate as it `ended`: each face's grid cells and its corners
@@ -120,27 +147,33 @@ fn ended_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])
         .collect()
 }
 
-/// The finished candidate that ends closest to `cloud` (the first on ties; ended as `ending`
-/// says) and how it ends; the first error when none finished.
+/// The candidate that ended closest to the input points (the first on ties) and how it
+/// ended; the first error when none finished.
 fn pick(
-    finished: Vec<Result<Completed, EngineError>>,
-    q: Quantizer,
-    cloud: &Mesh,
-    ending: &Ending,
-    seed: u64,
+    ended: Vec<Result<(Completed, Finished), EngineError>>,
 ) -> Result<(Completed, Finished), EngineError> {
-    let (completed, failed): (Vec<_>, Vec<_>) = finished.into_iter().partition(Result::is_ok);
-    let mut completed: Vec<Completed> = completed.into_iter().flatten().collect();
-    let faces = completed.iter().map(|c| c.tokens.as_slice());
-    match closest_finished(faces, q, cloud, ending, seed) {
-        Some(best) => Ok((completed.swap_remove(best.index), best)),
-        None => Err(failed.into_iter().find_map(Result::err).unwrap_or(EngineError::Stopped)),
+    let mut first_error = None;
+    let mut best: Option<(Completed, Finished)> = None;
+    for result in ended {
+        match result {
+            Ok(next) => {
+                let nearer = |b: &Finished| (next.1.distance, next.1.index) < (b.distance, b.index);
+                if best.as_ref().is_none_or(|(_, b)| nearer(b)) {
+                    best = Some(next);
+                }
+            }
+            Err(e) => {
+                first_error.get_or_insert(e);
+            }
+        }
     }
+    best.ok_or_else(|| first_error.unwrap_or(EngineError::Stopped))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::candidates::closest_finished;
     use crate::mesh::primitives::{cuboid, cuboid_split};
     use crate::mesh::sample_surface;
     use crate::tokenize::{canonical_triangulation, face_positions};

@@ -33,8 +33,14 @@ pub const MAX_FIT_ROUNDS: usize = 200;
 /// How hard a fit tries.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FitOptions {
-    /// Rounds of matching and moving.
+    /// The most rounds of matching and moving.
     pub rounds: usize,
+    /// A fit ends before `rounds` once this many rounds in a row moved its corners no less
+    /// on average than the least a round had moved them before (0: every round runs). The
+    /// mean move levels off at the sampling noise within a few rounds (a sixth to a third of
+    /// a cell on the shipped model's meshes, by the mesh: no fixed threshold fits all), yet
+    /// the later rounds still bring the mesh closer; see [`PATIENCE`].
+    pub patience: usize,
     /// Surface samples per round.
     pub samples: usize,
     /// The furthest a corner may end up from where it started, in the mesh's units.
@@ -45,9 +51,14 @@ pub struct FitOptions {
 
 impl Default for FitOptions {
     fn default() -> Self {
-        Self { rounds: 40, samples: 4096, max_shift: 1.0, step: 1.0 }
+        Self { rounds: 40, patience: PATIENCE, samples: 4096, max_shift: 1.0, step: 1.0 }
     }
 }
+
+/// [`FitOptions::patience`]'s default: every round runs. A patience of 5 ended fits after 27
+/// of 40 rounds on average but cost 44 dev meshes' Chamfer distance +0.0013 (standard error
+/// 0.0003; `docs/decisions.md`, "Fitting").
+pub const PATIENCE: usize = 0;
 
 /// How far corners may go past the bounds of the points and the mesh, in the points' mean
 /// spacing (the distance from a point to its nearest neighbour). Why: points sampled on a
@@ -68,80 +79,117 @@ const TANGENTIAL_SHARE: f32 = 0.1;
 /// `mesh` with its corners moved to fit the point cloud `cloud` (same faces, same vertex
 /// order); the cloud's normals are estimated when it has none (their sign does not matter).
 /// Errors as [`super::sample_surface`] for a mesh without area, and for an empty or invalid
-/// cloud (see [`Mesh::validate`]).
+/// cloud (see [`Mesh::validate`]). Several meshes fitted to one cloud share a [`FitTarget`]
+/// ([`fit_to_target`]).
 pub fn fit_to_points(
     mesh: &Mesh,
     cloud: &Mesh,
     options: &FitOptions,
     seed: u64,
 ) -> Result<Mesh, MeshError> {
-    cloud.validate()?;
-    let points = &cloud.vertices;
-    if points.is_empty() {
-        return Err(MeshError::invalid("no points to fit the mesh to"));
-    }
-    let target = Target::of(cloud)?;
-    let Some((lo, hi)) = bounds(&[points.as_slice(), &mesh.vertices].concat()) else {
+    fit_to_target(mesh, &FitTarget::new(cloud)?, options, seed)
+}
+
+/// [`fit_to_points`] with the cloud prepared once.
+pub fn fit_to_target(
+    mesh: &Mesh,
+    target: &FitTarget,
+    options: &FitOptions,
+    seed: u64,
+) -> Result<Mesh, MeshError> {
+    let Some((lo, hi)) = bounds(&mesh.vertices) else {
         return Err(MeshError::invalid("no corners to fit"));
     };
-    let margin = BOUNDS_MARGIN * target.spacing();
-    let (lo, hi) = (lo.map(|c| c - margin), hi.map(|c| c + margin));
+    let (lo, hi) = (
+        std::array::from_fn::<f32, 3, _>(|k| lo[k].min(target.lo[k]) - target.margin),
+        std::array::from_fn::<f32, 3, _>(|k| hi[k].max(target.hi[k]) + target.margin),
+    );
     let mut fitted = Mesh { normals: None, ..mesh.clone() };
+    let (mut least, mut since_least) = (f32::INFINITY, 0);
     for round in 0..options.rounds {
         let samples = surface_samples(&fitted, options.samples, seed.wrapping_add(round as u64))?;
-        let pulls = Pulls::of(&fitted, &samples, &target)?;
+        let pulls = Pulls::of(&fitted, &samples, target)?;
+        let mut moved_by = 0.0f32;
         for (v, shift) in pulls.shifts().into_iter().enumerate() {
             let Some(shift) = shift else { continue };
             let moved: [f32; 3] =
                 std::array::from_fn(|k| fitted.vertices[v][k] + options.step * shift[k]);
             let near = within(mesh.vertices[v], moved, options.max_shift);
             // Inside a box that holds the start, so this only brings the corner closer to it.
-            fitted.vertices[v] = std::array::from_fn(|k| near[k].clamp(lo[k], hi[k]));
+            let placed = std::array::from_fn(|k| near[k].clamp(lo[k], hi[k]));
+            moved_by += distance(fitted.vertices[v], placed);
+            fitted.vertices[v] = placed;
+        }
+        let mean = moved_by / fitted.vertices.len().max(1) as f32;
+        tracing::trace!(round, mean, "fit round");
+        if mean < least {
+            (least, since_least) = (mean, 0);
+        } else {
+            since_least += 1;
+        }
+        if options.patience > 0 && since_least >= options.patience {
+            tracing::debug!(rounds = round + 1, "the fit settled");
+            break;
         }
     }
     Ok(fitted)
 }
 
-/// What the corners are fitted to, prepared once for every round: the points, their unit
-/// normals (estimated when the cloud has none; zero where a given one is) and their k-d tree.
-struct Target<'a> {
-    points: &'a [[f32; 3]],
-    normals: Vec<[f32; 3]>,
-    tree: ImmutableKdTree<f32, 3>,
+fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt()
 }
 
-impl<'a> Target<'a> {
-    fn of(cloud: &'a Mesh) -> Result<Self, MeshError> {
-        let points = cloud.vertices.as_slice();
+/// What corners are fitted to, prepared once for every round and every mesh fitted to the
+/// same cloud (a reconstruction's candidates): its points, their unit normals (estimated when
+/// the cloud has none; zero where a given one is) and their k-d tree, and the bounds corners
+/// stay in (the cloud's, widened by [`BOUNDS_MARGIN`] of its spacing).
+///
+/// Every point pulls: pulling towards every fourth of the 16,384 reference points, a quarter
+/// of a round's main cost, cost 44 dev meshes' Chamfer distance +0.0011 (standard error
+/// 0.0004; `docs/decisions.md`, "Fitting").
+pub struct FitTarget {
+    points: Vec<[f32; 3]>,
+    normals: Vec<[f32; 3]>,
+    tree: ImmutableKdTree<f32, 3>,
+    lo: [f32; 3],
+    hi: [f32; 3],
+    margin: f32,
+}
+
+impl FitTarget {
+    /// Errors for an empty or invalid cloud (see [`Mesh::validate`]).
+    pub fn new(cloud: &Mesh) -> Result<Self, MeshError> {
+        cloud.validate()?;
+        let points = cloud.vertices.clone();
+        let Some((lo, hi)) = bounds(&points) else {
+            return Err(MeshError::invalid("no points to fit the mesh to"));
+        };
         let normals = match &cloud.normals {
             Some(normals) => normals.iter().map(|&n| normalized(n)).collect(),
             None => {
-                estimate_normals(points, NORMAL_NEIGHBOURS).into_iter().map(normalized).collect()
+                estimate_normals(&points, NORMAL_NEIGHBOURS).into_iter().map(normalized).collect()
             }
         };
-        Ok(Self { points, normals, tree: tree_of(points)? })
+        let tree = tree_of(&points)?;
+        let margin = BOUNDS_MARGIN * spacing(&points, &tree);
+        Ok(Self { points, normals, tree, lo, hi, margin })
     }
+}
 
-    /// The points' mean distance to their nearest neighbour (over up to [`SPACING_PROBES`] of
-    /// them, evenly taken); 0 for a single point.
-    fn spacing(&self) -> f32 {
-        let probes: Vec<[f32; 3]> = self
-            .points
-            .iter()
-            .step_by(self.points.len().div_ceil(SPACING_PROBES))
-            .copied()
-            .collect();
-        let two = NonZeroUsize::new(2).unwrap_or(NonZeroUsize::MIN);
-        // The nearest of a point is itself; the second is its neighbour.
-        let nearest =
-            self.tree.query_batch(&probes).nearest_n::<SquaredEuclidean<f32>>(two).execute();
-        let distances: Vec<f32> = (0..probes.len())
-            .filter_map(|i| nearest.get(i)?.get(1).map(|n| n.distance.sqrt()))
-            .collect();
-        match distances.len() {
-            0 => 0.0,
-            n => distances.iter().sum::<f32>() / n as f32,
-        }
+/// The mean distance of `points` (in `tree`) to their nearest neighbour (over up to
+/// [`SPACING_PROBES`] of them, evenly taken); 0 for a single point.
+fn spacing(points: &[[f32; 3]], tree: &ImmutableKdTree<f32, 3>) -> f32 {
+    let probes: Vec<[f32; 3]> =
+        points.iter().step_by(points.len().div_ceil(SPACING_PROBES)).copied().collect();
+    let two = NonZeroUsize::new(2).unwrap_or(NonZeroUsize::MIN);
+    // The nearest of a point is itself; the second is its neighbour.
+    let nearest = tree.query_batch(&probes).nearest_n::<SquaredEuclidean<f32>>(two).execute();
+    let distances: Vec<f32> = (0..probes.len())
+        .filter_map(|i| nearest.get(i)?.get(1).map(|n| n.distance.sqrt()))
+        .collect();
+    match distances.len() {
+        0 => 0.0,
+        n => distances.iter().sum::<f32>() / n as f32,
     }
 }
 
@@ -156,8 +204,8 @@ struct Pulls {
 }
 
 impl Pulls {
-    fn of(mesh: &Mesh, samples: &[SurfaceSample], target: &Target) -> Result<Self, MeshError> {
-        let (points, normals) = (target.points, &target.normals);
+    fn of(mesh: &Mesh, samples: &[SurfaceSample], target: &FitTarget) -> Result<Self, MeshError> {
+        let (points, normals) = (target.points.as_slice(), &target.normals);
         let n = mesh.vertices.len();
         let mut pulls = Pulls { a: vec![[[0.0; 3]; 3]; n], r: vec![[0.0; 3]; n] };
         let positions: Vec<[f32; 3]> = samples.iter().map(|s| s.position(mesh)).collect();
@@ -299,7 +347,7 @@ mod tests {
 
     /// The bounds of `cloud` and `mesh` together, widened by [`BOUNDS_MARGIN`] spacings.
     fn widened_bounds(cloud: &Mesh, mesh: &Mesh) -> ([f32; 3], [f32; 3]) {
-        let margin = BOUNDS_MARGIN * Target::of(cloud).unwrap().spacing();
+        let margin = FitTarget::new(cloud).unwrap().margin;
         let all = [cloud.vertices.as_slice(), &mesh.vertices].concat();
         let (lo, hi) = crate::mesh::bounds(&all).unwrap();
         (lo.map(|c| c - margin), hi.map(|c| c + margin))
@@ -335,6 +383,25 @@ mod tests {
         let fitted = fit_to_points(&pyramid(highest), &cloud, &FitOptions::default(), 0).unwrap();
         let apex = fitted.vertices[4][1];
         assert!(apex > highest + 0.5 * (0.8 - highest), "apex at {apex}, points to {highest}");
+    }
+
+    #[test]
+    fn a_fit_ends_once_its_corners_stop_moving_less() {
+        let cloud = sample_surface(&cuboid([1.0, 0.6, 0.8]), 1024, 1).unwrap();
+        let off = cuboid([0.94, 0.65, 0.8]);
+        let fit = |rounds, patience| {
+            let options = FitOptions { rounds, patience, ..FitOptions::default() };
+            fit_to_points(&off, &cloud, &options, 0).unwrap()
+        };
+        // A box settles in a few rounds; with no patience every round runs.
+        let settled = (1..=40).find(|&rounds| fit(rounds, 0) == fit(40, 5));
+        assert!(settled.is_some_and(|r| r < 30), "settled after {settled:?} rounds");
+        assert_ne!(fit(40, 0), fit(40, 5));
+        assert_eq!(fit(40, PATIENCE), fit(40, 0), "the default runs every round");
+        // Settled, the fit is as good as all 40 rounds.
+        for (a, b) in fit(40, 5).vertices.iter().zip(&fit(40, 0).vertices) {
+            assert!(distance(*a, *b) < 0.005, "{a:?} against {b:?}");
+        }
     }
 
     proptest::proptest! {

@@ -23,7 +23,7 @@ pub mod transform;
 pub(crate) use disjoint_sets::DisjointSets;
 pub use error::MeshError;
 pub use files::{expand_mesh_paths, mesh_files_in};
-pub use fit::{FitOptions, MAX_FIT_ROUNDS, fit_to_points};
+pub use fit::{FitOptions, FitTarget, MAX_FIT_ROUNDS, fit_to_points, fit_to_target};
 pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
