@@ -27,6 +27,10 @@ use traffic::{Client, Mix, Outcome, Record, Traffic};
 /// small limit keeps those requests cheap (a request's points are a few tens of KB).
 const CHILD_MAX_BODY_BYTES: &str = "1048576";
 
+/// How long the server is left idle before its memory is read: past its idle trim (one second)
+/// and the last connections' closing.
+const SETTLE: Duration = Duration::from_secs(2);
+
 #[derive(Args)]
 pub struct SoakArgs {
     /// Requests in all (a request refused with 429 and sent again counts once).
@@ -172,7 +176,9 @@ async fn soak(
     let warm_mix = Mix { garbage: 0.0, leave: 0.0, ..mix };
     run_clients(&traffic, warm_mix, args.concurrency * 2, args.concurrency, args.seed ^ 0xdead)
         .await;
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    // Both memory figures are read once the server has been idle long enough to hand freed
+    // memory back (`serve` does after a second), so that they compare like with like.
+    tokio::time::sleep(SETTLE).await;
     let rss_start = target.rss();
     let peak = PeakRss::watch(target.child.as_ref().map(std::process::Child::id));
     let t0 = Instant::now();
@@ -180,8 +186,7 @@ async fn soak(
     let duration = t0.elapsed();
     let rss_peak = peak.stop();
     target.check_alive()?;
-    // Let the last connections close and the allocator settle before the end figure.
-    tokio::time::sleep(Duration::from_secs(1)).await;
+    tokio::time::sleep(SETTLE).await;
     let rss_end = target.rss();
     Ok(Report {
         requests: args.requests,

@@ -16,6 +16,7 @@ mod best_of;
 mod config;
 mod diffusion_stage;
 mod error;
+mod memory;
 mod metrics;
 mod request;
 mod scheduler;

@@ -10,6 +10,7 @@ use candle_core::Tensor;
 use rayon::prelude::*;
 use tokio::sync::mpsc;
 
+use super::memory;
 use crate::diffusion::DiffusionModel;
 use crate::mesh::Normalization;
 use crate::model::{
@@ -182,6 +183,8 @@ impl Scheduler {
         let cfg = &shared.config;
         let metrics = &shared.metrics;
         let mut q = shared.lock();
+        // Whether this idle spell has handed its freed memory back yet.
+        let mut trimmed = false;
         loop {
             let now = Instant::now();
             let past_deadline = q.closing.is_some_and(|t| now >= t);
@@ -217,7 +220,22 @@ impl Scheduler {
                 if q.closing.is_some() {
                     return None;
                 }
-                q = shared.wake.wait(q).unwrap_or_else(|poisoned| poisoned.into_inner());
+                if trimmed {
+                    q = shared.wake.wait(q).unwrap_or_else(|poisoned| poisoned.into_inner());
+                    continue;
+                }
+                let (guard, waited) = shared
+                    .wake
+                    .wait_timeout(q, memory::TRIM_AFTER_IDLE)
+                    .unwrap_or_else(|poisoned| poisoned.into_inner());
+                q = guard;
+                if waited.timed_out() {
+                    // Without the lock: submitters need not wait for the allocator.
+                    drop(q);
+                    memory::release_free_memory();
+                    trimmed = true;
+                    q = shared.lock();
+                }
                 continue;
             }
             let reserved: usize = self.running.iter().map(|a| a.faces_reserved).sum::<usize>()
