@@ -129,6 +129,17 @@ impl FaceModel {
         layers
     }
 
+    /// The linear layers that run once per decoded face: face pooling, decoder, head.
+    pub(crate) fn decoding_dense_mut(&mut self) -> Vec<&mut Dense> {
+        let encoder = self.encoder_dense_mut().len();
+        self.dense_mut().into_iter().skip(encoder).collect()
+    }
+
+    /// The encoder's linear layers, which run once per request on every point.
+    pub(crate) fn encoder_dense_mut(&mut self) -> Vec<&mut Dense> {
+        self.encoder.dense_mut()
+    }
+
     pub fn device(&self) -> &Device {
         self.start.device()
     }
