@@ -1,9 +1,6 @@
-//! Where model work runs. candle's matmuls spread over the threads of the pool they run in,
-//! which costs more than it saves for a few rows: a batch too small to split into parts runs
-//! on one thread (about twice as fast for one sequence, see `bench decode`). Work always runs
-//! inside one of these pools, never from outside rayon: a call from another thread pays a
-//! cross-thread hand-off on every parallel op (candle's quantized matmul splits every row),
-//! which a busy machine turns into stalls.
+//! Where model work runs: a batch is stepped in parts, one per decode thread, and a batch too
+//! small to split runs on a single thread. `meshstream` keeps candle's own kernels on the
+//! thread of their part (`src/kernel_threads.rs`), so the parts are the only parallelism.
 
 use rayon::prelude::*;
 
