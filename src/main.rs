@@ -49,6 +49,7 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     kernel_threads::one_per_kernel()?;
+    meshstream::engine::map_large_blocks();
     match Cli::parse().command {
         Command::Stats(args) => commands::stats::run(&args),
         Command::Convert(args) => commands::convert::run(&args),

@@ -38,6 +38,7 @@ use crate::tokenize::Quantizer;
 
 pub use config::EngineConfig;
 pub use error::EngineError;
+pub use memory::map_large_blocks;
 pub use metrics::Metrics;
 pub use pools::{DecodePools, PartResult};
 pub use request::{
