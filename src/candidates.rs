@@ -52,6 +52,15 @@ pub struct Ending {
 /// Points sampled on each candidate's surface to compare it with the input points.
 const FIT_SAMPLES: usize = 4096;
 
+/// Candidates are judged after a cheaper fit than the one their winner gets: against every
+/// this-many-th reference point, for [`JUDGING_ROUNDS_SHARE`] of the rounds (about a fifth of
+/// a full fit), and only the winner is then fitted in full. Why: fitting every candidate in
+/// full cost more than decoding them (`docs/decisions.md`, "Fitting").
+const JUDGING_POINT_STEP: usize = 4;
+
+/// The share of a request's fit rounds a candidate gets before it is judged.
+const JUDGING_ROUNDS_SHARE: f32 = 0.5;
+
 /// One decoded mesh.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Candidate {
@@ -152,7 +161,9 @@ pub struct Finished {
 
 /// How one reconstruction ends its candidates (welded, then fitted to its input points when
 /// asked) and judges them: prepared once, so that every candidate fits to the same prepared
-/// points, and each candidate can be ended on its own as soon as it is decoded.
+/// points, and each candidate can be ended on its own as soon as it is decoded ([`Self::end`]).
+/// When several are compared, each is judged after a cheaper fit and only the winner is
+/// fitted in full ([`Self::finish`]; see [`JUDGING_POINT_STEP`]).
 pub struct Judge {
     q: Quantizer,
     cloud: Arc<Mesh>,
@@ -160,6 +171,8 @@ pub struct Judge {
     /// The prepared cloud when fitting; `None` also for a cloud that cannot be fitted to
     /// (the candidates then end as decoded).
     target: Option<FitTarget>,
+    /// What candidates are fitted to before they are judged: `target` thinned.
+    judging_target: Option<FitTarget>,
     seed: u64,
     /// One candidate has nothing to be compared with, and is not judged.
     compare: bool,
@@ -174,6 +187,7 @@ impl Judge {
         seed: u64,
         candidates: usize,
     ) -> Self {
+        let compare = candidates > 1;
         let target = ending.fit.and_then(|_| match FitTarget::new(&cloud) {
             Ok(target) => Some(target),
             Err(e) => {
@@ -181,19 +195,57 @@ impl Judge {
                 None
             }
         });
-        Self { q, cloud, ending, target, seed, compare: candidates > 1 }
+        let judging_target = match &target {
+            Some(target) if compare => target.thinned(JUDGING_POINT_STEP).ok(),
+            _ => None,
+        };
+        Self { q, cloud, ending, target, judging_target, seed, compare }
     }
 
-    /// Candidate `index` with `faces`, ended and judged.
+    /// Candidate `index` with `faces`, ended and judged: fitted as it is judged when several
+    /// are compared (the winner then goes to [`Self::finish`]), else fitted in full.
     pub fn end(&self, index: usize, faces: &[FaceToken]) -> Finished {
+        let started = std::time::Instant::now();
         let decoded = detokenize(&weld_near_corners(faces, self.ending.weld_radius), self.q);
-        let mesh = match (&self.ending.fit, &self.target) {
-            (Some(fit), Some(target)) => fitted_mesh(&decoded, self.q, target, fit, self.seed),
-            _ => decoded.clone(),
+        let judging = self.ending.fit.map(|fit| FitOptions {
+            rounds: ((fit.rounds as f32 * JUDGING_ROUNDS_SHARE).ceil() as usize).max(1),
+            ..fit
+        });
+        let mesh = match (self.compare, &judging, &self.judging_target) {
+            (true, Some(fit), Some(target)) => {
+                fitted_mesh(&decoded, self.q, target, fit, self.seed)
+            }
+            (true, _, _) => decoded.clone(),
+            (false, _, _) => self.fitted(&decoded),
         };
+        let fitted = started.elapsed();
         let distance =
             if self.compare { input_distance(&mesh, &self.cloud.vertices, self.seed) } else { 0.0 };
+        tracing::debug!(
+            index,
+            faces = faces.len(),
+            fit_ms = fitted.as_secs_f64() * 1e3,
+            judge_ms = (started.elapsed() - fitted).as_secs_f64() * 1e3,
+            "candidate ended"
+        );
         Finished { index, decoded, mesh, distance }
+    }
+
+    /// The candidate that won, as it is returned: fitted in full from its decoded corners
+    /// when it was judged after the cheaper fit (the mesh it would have ended as alone).
+    pub fn finish(&self, winner: Finished) -> Finished {
+        if !self.compare {
+            return winner;
+        }
+        Finished { mesh: self.fitted(&winner.decoded), ..winner }
+    }
+
+    /// `decoded` fitted in full when fitting, else as it is.
+    fn fitted(&self, decoded: &Mesh) -> Mesh {
+        match (&self.ending.fit, &self.target) {
+            (Some(fit), Some(target)) => fitted_mesh(decoded, self.q, target, fit, self.seed),
+            _ => decoded.clone(),
+        }
     }
 }
 
@@ -226,7 +278,7 @@ pub fn closest_finished<'a>(
         .enumerate()
         .map(|(index, faces)| judge.end(index, faces))
         .collect();
-    closest(ended)
+    closest(ended).map(|winner| judge.finish(winner))
 }
 
 /// The `decoded` mesh (normalized frame) with its corners fitted to the input `target` (see
@@ -360,6 +412,35 @@ mod tests {
         // One candidate is not judged: it ends as it is, whatever it is.
         let alone = closest_finished([&[][..]].into_iter(), q, &cloud, &as_decoded, 0).unwrap();
         assert_eq!(alone.index, 0);
+    }
+
+    #[test]
+    fn candidates_are_judged_after_a_cheaper_fit_and_the_winner_is_fitted_in_full() {
+        let q = Quantizer::new(128).unwrap();
+        let cloud = sample_surface(&cuboid([1.6, 1.6, 1.6]), 4096, 3).unwrap();
+        let small = tokenize(&cuboid([1.28, 1.28, 1.28]), q).faces;
+        // Half a cube: no fit covers the other half.
+        let half = &tokenize(&cuboid([1.6, 1.6, 1.6]), q).faces[..6];
+        let fit = FitOptions::default();
+        let ending = Ending { fit: Some(fit), ..Ending::default() };
+        let judge = Judge::new(q, Arc::new(cloud.clone()), ending, 0, 2);
+        let ended = [judge.end(0, &small), judge.end(1, half)];
+        let target = FitTarget::new(&cloud).unwrap();
+        let in_full = |f: &Finished| fitted_mesh(&f.decoded, q, &target, &fit, 0);
+        // Judged as the cheaper fit left them: not the full fit.
+        assert!(ended.iter().all(|f| f.mesh != in_full(f)));
+        let winner = closest(ended.clone()).unwrap();
+        assert_eq!(winner.index, 0);
+        let finished = judge.finish(winner.clone());
+        assert_eq!(finished.mesh, in_full(&winner));
+        assert_eq!((finished.index, finished.distance), (winner.index, winner.distance));
+        let best = closest_finished([&small[..], half].into_iter(), q, &cloud, &ending, 0);
+        assert_eq!(best, Some(finished));
+        // Alone, a candidate is fitted in full as it ends.
+        let alone = Judge::new(q, Arc::new(cloud.clone()), ending, 0, 1);
+        let ended = alone.end(0, &small);
+        assert_eq!(ended.mesh, in_full(&ended));
+        assert_eq!(alone.finish(ended.clone()), ended);
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! generate them from images, and serve the models over HTTP and gRPC.
 
 mod commands;
+mod kernel_threads;
 
 use clap::{Parser, Subcommand};
 
@@ -47,6 +48,8 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
+    kernel_threads::one_per_kernel()?;
+    meshstream::engine::map_large_blocks();
     match Cli::parse().command {
         Command::Stats(args) => commands::stats::run(&args),
         Command::Convert(args) => commands::convert::run(&args),

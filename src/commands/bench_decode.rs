@@ -1,6 +1,7 @@
 //! `meshstream bench decode`: decoding speed of the FACE model, with random weights (against
 //! the per-coordinate baseline running the same transformer) or a model folder's, in f32 and
-//! quantized side by side.
+//! quantized side by side. Every step runs as the engine runs it ([`DecodePools`]): a batch in
+//! parts on the decode threads, one part on a single thread.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -8,12 +9,12 @@ use std::time::Instant;
 use anyhow::Context;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
+use meshstream::engine::{DecodePools, EngineConfig};
 use meshstream::mesh::primitives::uv_sphere;
 use meshstream::mesh::{farthest_point_sampling, sample_surface};
 use meshstream::model::{
     BaselineState, CoordinateBaseline, DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceConfig,
     FaceModel, GenerateOptions, Generation, Quantize, SamplingParams, checkpoint, parse_device,
-    step_generations,
 };
 
 use super::out;
@@ -45,6 +46,9 @@ pub struct DecodeBenchArgs {
     /// Face counts at which FACE and the per-coordinate baseline are compared.
     #[arg(long, value_delimiter = ',', default_values_t = vec![200, 800])]
     pub compare: Vec<usize>,
+    /// Decode threads, as `serve --decode-threads` (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
 }
 
 fn random_weights(
@@ -72,6 +76,7 @@ struct Decoding {
 /// seconds taken, the faces decoded, and one sequence's KV-cache bytes (self, cross) at the
 /// end.
 fn decode_face(
+    pools: &DecodePools,
     model: &FaceModel,
     latents: &Tensor,
     batch: usize,
@@ -93,7 +98,9 @@ fn decode_face(
     let t = Instant::now();
     while gens.iter().any(|g| !g.is_finished()) {
         let mut refs: Vec<&mut Generation> = gens.iter_mut().filter(|g| !g.is_finished()).collect();
-        step_generations(model, &mut refs)?;
+        for part in pools.step(model, &mut refs, |g| &mut **g) {
+            part?;
+        }
     }
     let secs = t.elapsed().as_secs_f64();
     let decoded = gens.iter().map(|g| g.faces().len()).sum();
@@ -101,18 +108,22 @@ fn decode_face(
     Ok((secs, decoded, (cache.self_attention_bytes(), cache.cross_attention_bytes())))
 }
 
-/// The baseline decodes 9 tokens per face for `faces` faces (one sequence).
+/// The baseline decodes 9 tokens per face for `faces` faces (one sequence, on the thread
+/// FACE's one sequence runs on).
 fn decode_baseline(
+    pools: &DecodePools,
     model: &CoordinateBaseline,
     latents: &Tensor,
     faces: usize,
 ) -> anyhow::Result<(f64, usize)> {
-    let mut state: BaselineState = model.start_sequence(latents)?;
-    let t = Instant::now();
-    for _ in 0..9 * faces {
-        model.step_greedy(&mut [&mut state])?;
-    }
-    Ok((t.elapsed().as_secs_f64(), state.cache().self_attention_bytes()))
+    pools.pool_for(1).install(|| {
+        let mut state: BaselineState = model.start_sequence(latents)?;
+        let t = Instant::now();
+        for _ in 0..9 * faces {
+            model.step_greedy(&mut [&mut state])?;
+        }
+        Ok((t.elapsed().as_secs_f64(), state.cache().self_attention_bytes()))
+    })
 }
 
 fn mib(bytes: usize) -> String {
@@ -207,10 +218,12 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
         }
     };
     let cfg = model.config().clone();
+    let threads =
+        EngineConfig { decode_threads: args.threads, ..EngineConfig::default() }.threads();
+    let pools = DecodePools::new(threads)?;
     out(format_args!(
-        "{source} ({:.2}M parameters), {} threads",
+        "{source} ({:.2}M parameters), {threads} decode threads",
         cfg.parameter_count() as f64 / 1e6,
-        candle_core::utils::get_num_threads()
     ))?;
     let variants = variants(&model, &args.quantize)?;
 
@@ -226,7 +239,7 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
             .map(|i| i as u32)
             .collect();
         let idx = Tensor::from_vec(idx, (1, cfg.num_latents), &device)?;
-        let latents = model.encode(&points, &points, &idx)?;
+        let latents = pools.wide().install(|| model.encode(&points, &points, &idx))?;
         Ok((t.elapsed().as_secs_f64(), latents))
     };
     encode(&model)?; // warm-up
@@ -245,10 +258,10 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
         compare(&variants, &ms, "ms", false),
     ]);
     let greedy = Decoding { sampling: SamplingParams::greedy(), constrained: false, face_beam: 1 };
-    decode_face(&model, &latents, 1, 8, &greedy)?; // warm-up
+    decode_face(&pools, &model, &latents, 1, 8, &greedy)?; // warm-up
     for &b in &args.batches {
         let runs = best_of(args.rounds, &variants, |m| {
-            let (secs, n, _) = decode_face(m, &latents, b, args.faces, &greedy)?;
+            let (secs, n, _) = decode_face(&pools, m, &latents, b, args.faces, &greedy)?;
             Ok((secs, n))
         })?;
         let rates: Vec<f64> = runs.iter().map(|(s, n)| *n as f64 / s).collect();
@@ -262,7 +275,7 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
         let mut rates = Vec::new();
         for face_beam in [1, DEFAULT_FACE_BEAM] {
             let masked = Decoding { constrained: true, face_beam, ..greedy.clone() };
-            let (secs, n, _) = decode_face(&model, &latents, b, args.faces, &masked)?;
+            let (secs, n, _) = decode_face(&pools, &model, &latents, b, args.faces, &masked)?;
             rates.push(n as f64 / secs);
         }
         table.add_row(vec![
@@ -289,7 +302,7 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
     let mut cache_rows = Vec::new();
     for &faces in &args.compare {
         let runs = best_of(args.rounds, &variants, |m| {
-            let (secs, n, cache) = decode_face(m, &latents, 1, faces, &request)?;
+            let (secs, n, cache) = decode_face(&pools, m, &latents, 1, faces, &request)?;
             Ok((secs, (n, cache)))
         })?;
         // A sequence may stop at a dead end, and the formats at different ones: each result
@@ -315,8 +328,8 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
     }
     if let Some(baseline) = &baseline {
         for (faces, _, base) in cache_rows.iter_mut() {
-            let (face_secs, _, _) = decode_face(&model, &latents, 1, *faces, &greedy)?;
-            let (base_secs, base_cache) = decode_baseline(baseline, &latents, *faces)?;
+            let (face_secs, _, _) = decode_face(&pools, &model, &latents, 1, *faces, &greedy)?;
+            let (base_secs, base_cache) = decode_baseline(&pools, baseline, &latents, *faces)?;
             table.add_row(vec![
                 format!(
                     "{faces} faces: FACE ({faces} steps) vs per-coordinate ({} steps)",

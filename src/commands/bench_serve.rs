@@ -13,7 +13,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{Mesh, REFERENCE_POINTS, ReadLimits};
-use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, checkpoint, parse_device};
+use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, Quantize, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{Options, ReconstructRequest, reconstruct_response};
 use meshstream::server::{
@@ -31,6 +31,9 @@ pub struct ServeBenchArgs {
     model: PathBuf,
     #[arg(long, default_value = "cpu")]
     device: String,
+    /// Number format of the model's linear layers, as `serve --quantize`.
+    #[arg(long, default_value_t = Quantize::F32)]
+    quantize: Quantize,
     /// Concurrent clients, one level per row.
     #[arg(long, value_delimiter = ',', default_values_t = [1, 4, 16])]
     concurrency: Vec<usize>,
@@ -98,8 +101,7 @@ impl Level {
 
 pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     let device = parse_device(&args.device)?;
-    let model = checkpoint::load(&args.model, &device)
-        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let (model, _) = super::load_face_model(&args.model, &device, args.quantize)?;
     // The shipped engine settings: a level past `max_running` queues, as a server's would,
     // but for as long as it takes (a loaded machine is measured, not refused).
     let config = EngineConfig {

@@ -56,7 +56,7 @@ pub struct ReconstructArgs {
     #[arg(long, default_value_t = REFERENCE_POINTS, value_parser = point_count())]
     reference_points: usize,
     /// Number format of the model's linear layers: f32, q8_0 or q4k (quantized when the model
-    /// loads; layers whose inputs do not fit the blocks stay f32).
+    /// loads; the encoder and layers whose inputs do not fit the blocks stay f32).
     #[arg(long, default_value_t = Quantize::F32)]
     quantize: Quantize,
 }

@@ -76,7 +76,7 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_BODY_READ_TIMEOUT", default_value_t = 60.0)]
     body_read_timeout: f64,
     /// Number format of the model's linear layers: f32, q8_0 or q4k (quantized when the model
-    /// loads; layers whose inputs do not fit the blocks stay f32).
+    /// loads; the encoder and layers whose inputs do not fit the blocks stay f32).
     #[arg(long, env = "MESHSTREAM_QUANTIZE", default_value_t = Quantize::F32)]
     quantize: Quantize,
     /// Threads stepping the running batch (0: one per core).

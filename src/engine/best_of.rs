@@ -95,7 +95,12 @@ pub(super) fn submit(
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
-        let event = match pick(ended) {
+        // The winner is fitted in full: every candidate was judged after a cheaper fit.
+        let won = match pick(ended) {
+            Ok((best, ended)) => off_runtime(move || (best, judge.finish(ended))).await,
+            Err(e) => Err(e),
+        };
+        let event = match won {
             Ok((mut best, ended)) => {
                 for (index, (token, corners)) in ended_faces(&ended, q).into_iter().enumerate() {
                     let vertices = corners.map(|p| normalization.invert(p));

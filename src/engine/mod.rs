@@ -18,6 +18,7 @@ mod diffusion_stage;
 mod error;
 mod memory;
 mod metrics;
+mod pools;
 mod request;
 mod scheduler;
 mod stream;
@@ -37,7 +38,9 @@ use crate::tokenize::Quantizer;
 
 pub use config::EngineConfig;
 pub use error::EngineError;
+pub use memory::map_large_blocks;
 pub use metrics::Metrics;
+pub use pools::{DecodePools, PartResult};
 pub use request::{
     Conditioning, DecodeOptions, EncoderPoints, ImagePrompt, PreparedPoints, Request,
 };
@@ -93,17 +96,7 @@ impl Engine {
         let levels = u16::try_from(model_config.quant_levels)
             .map_err(|_| EngineError::Model("quantization levels out of range".into()))?;
         let quantizer = Quantizer::new(levels).map_err(|e| EngineError::Model(e.to_string()))?;
-        let pool = |threads: usize, name: &'static str| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .thread_name(move |i| format!("{name}-{i}"))
-                .build()
-                .map_err(|e| EngineError::Model(format!("cannot start the decode threads: {e}")))
-        };
-        let pools = scheduler::Pools {
-            wide: pool(config.threads(), "engine-decode")?,
-            single: pool(1, "engine-decode-single")?,
-        };
+        let pools = DecodePools::new(config.threads())?;
         let shared = Arc::new(Shared {
             queue: Mutex::new(QueueState {
                 waiting: VecDeque::new(),

@@ -7,26 +7,21 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use candle_core::Tensor;
-use rayon::prelude::*;
 use tokio::sync::mpsc;
 
 use super::memory;
 use crate::diffusion::DiffusionModel;
 use crate::mesh::Normalization;
-use crate::model::{
-    DEFAULT_FACE_BEAM, FaceModel, FinishReason, GenerateOptions, Generation, step_generations,
-};
+use crate::model::{DEFAULT_FACE_BEAM, FaceModel, FinishReason, GenerateOptions, Generation};
 use crate::tokenize::{Quantizer, face_positions};
 
 use super::admission::{Candidate, Capacity, admit};
 use super::diffusion_stage::DiffusionStage;
 use super::metrics::Metrics;
+use super::pools::DecodePools;
 use super::request::{Conditioning, PreparedPoints, Request};
 use super::stream::{Event, StreamedFace, Summary};
 use super::{EngineConfig, EngineError};
-
-/// Rows below which a part of the batch is not worth a thread of its own.
-const MIN_ROWS_PER_THREAD: usize = 4;
 
 /// A request accepted into the queue.
 pub(super) struct Pending {
@@ -103,21 +98,11 @@ impl Active {
     }
 }
 
-/// Where model work runs. candle's matmuls spread over the threads of the pool they run in,
-/// which costs more than it saves for a few rows: a batch too small to split into parts runs
-/// on one thread (about twice as fast for one sequence, see `bench decode`).
-pub(super) struct Pools {
-    /// One thread per core (or `decode_threads`): parts of the batch in parallel, encoding,
-    /// diffusion.
-    pub wide: rayon::ThreadPool,
-    pub single: rayon::ThreadPool,
-}
-
 pub(super) struct Scheduler {
     model: FaceModel,
     quantizer: Quantizer,
     shared: Arc<Shared>,
-    pools: Pools,
+    pools: DecodePools,
     running: Vec<Active>,
     /// Image requests before decoding; `None` when the engine has no image model.
     diffusion: Option<DiffusionStage>,
@@ -129,7 +114,7 @@ impl Scheduler {
         diffusion: Option<DiffusionModel>,
         quantizer: Quantizer,
         shared: Arc<Shared>,
-        pools: Pools,
+        pools: DecodePools,
     ) -> Self {
         let diffusion = diffusion.map(DiffusionStage::new);
         Self { model, quantizer, shared, pools, running: Vec::new(), diffusion }
@@ -288,7 +273,7 @@ impl Scheduler {
                 Conditioning::Image(_) => None,
             })
             .collect();
-        let latents = self.pools.wide.install(|| encode_batch(&self.model, &clouds));
+        let latents = self.pools.wide().install(|| encode_batch(&self.model, &clouds));
         let prepare = now.elapsed();
         for (i, p) in points.into_iter().enumerate() {
             let latents = latents.as_ref().map_err(Clone::clone).and_then(|l| Ok(l.get(i)?));
@@ -307,7 +292,7 @@ impl Scheduler {
             return;
         }
         let metrics = Arc::clone(&self.shared.metrics);
-        let ready = self.pools.wide.install(|| stage.step(&metrics));
+        let ready = self.pools.wide().install(|| stage.step(&metrics));
         for s in ready {
             self.begin_decoding(s.pending, Ok(s.latents), s.queued, s.prepare);
         }
@@ -386,19 +371,8 @@ impl Scheduler {
             return;
         }
         metrics.batch_size.observe(rows.len() as f64);
-        let threads = self.pools.wide.current_num_threads();
-        let part = rows.len().div_ceil(threads).max(MIN_ROWS_PER_THREAD);
-        let model = &self.model;
-        let pool = if rows.len() <= part { &self.pools.single } else { &self.pools.wide };
-        let results: Vec<_> = pool.install(|| {
-            rows.par_chunks_mut(part)
-                .map(|part| {
-                    let mut gens: Vec<&mut Generation> =
-                        part.iter_mut().map(|a| &mut a.generation).collect();
-                    step_generations(model, &mut gens)
-                })
-                .collect()
-        });
+        let part = self.pools.part_size(rows.len());
+        let results = self.pools.step(&self.model, &mut rows, |a| &mut a.generation);
         let now = Instant::now();
         for (part, result) in rows.chunks_mut(part).zip(results) {
             match result {

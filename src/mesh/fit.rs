@@ -174,6 +174,17 @@ impl FitTarget {
         let margin = BOUNDS_MARGIN * spacing(&points, &tree);
         Ok(Self { points, normals, tree, lo, hi, margin })
     }
+
+    /// This target with only every `step`-th of its points (the same bounds): a cheaper,
+    /// rougher fit.
+    pub fn thinned(&self, step: usize) -> Result<Self, MeshError> {
+        let every = |set: &[[f32; 3]]| -> Vec<[f32; 3]> {
+            set.iter().step_by(step.max(1)).copied().collect()
+        };
+        let points = every(&self.points);
+        let tree = tree_of(&points)?;
+        Ok(Self { normals: every(&self.normals), points, tree, ..*self })
+    }
 }
 
 /// The mean distance of `points` (in `tree`) to their nearest neighbour (over up to

@@ -122,11 +122,27 @@ impl FaceModel {
 
     /// Every linear layer: the encoder's, the face pooling's, the decoder's and the head's.
     pub(crate) fn dense_mut(&mut self) -> Vec<&mut Dense> {
-        let mut layers = self.encoder.dense_mut();
-        layers.extend(self.pooling.dense_mut());
-        layers.extend(self.stack.dense_mut());
-        layers.extend(self.head.dense_mut());
+        let (mut layers, decoding) = self.dense_mut_by_stage();
+        layers.extend(decoding);
         layers
+    }
+
+    /// The linear layers that run once per decoded face: face pooling, decoder, head.
+    pub(crate) fn decoding_dense_mut(&mut self) -> Vec<&mut Dense> {
+        self.dense_mut_by_stage().1
+    }
+
+    /// The encoder's linear layers, which run once per request on every point.
+    pub(crate) fn encoder_dense_mut(&mut self) -> Vec<&mut Dense> {
+        self.dense_mut_by_stage().0
+    }
+
+    /// The linear layers of the encoder, and those of the decoding.
+    fn dense_mut_by_stage(&mut self) -> (Vec<&mut Dense>, Vec<&mut Dense>) {
+        let mut decoding = self.pooling.dense_mut();
+        decoding.extend(self.stack.dense_mut());
+        decoding.extend(self.head.dense_mut());
+        (self.encoder.dense_mut(), decoding)
     }
 
     pub fn device(&self) -> &Device {

@@ -23,7 +23,7 @@ impl Target {
     /// (a later flag overrides an earlier one); waits until it listens.
     pub fn start(model: &Path, defaults: &[&str], extra: &[String]) -> anyhow::Result<Self> {
         let exe = std::env::current_exe().context("finding this program")?;
-        let mut child = Command::new(exe)
+        let mut child = crate::kernel_threads::as_called(&mut Command::new(exe))
             .arg("serve")
             .arg("--model")
             .arg(model)
