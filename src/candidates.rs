@@ -53,10 +53,14 @@ pub struct Ending {
 const FIT_SAMPLES: usize = 4096;
 
 /// Candidates are judged after a cheaper fit than the one their winner gets: against every
-/// this-many-th reference point, for [`JUDGING_ROUNDS_SHARE`] of the rounds (about a fifth of
-/// a full fit), and only the winner is then fitted in full. Why: fitting every candidate in
+/// this-many-th reference point, with fewer samples ([`JUDGING_SAMPLE_STEP`]), for
+/// [`JUDGING_ROUNDS_SHARE`] of the rounds, and only the winner is then fitted in full. Why: fitting every candidate in
 /// full cost more than decoding them (`docs/decisions.md`, "Fitting").
 const JUDGING_POINT_STEP: usize = 4;
+
+/// Candidates are judged after a fit with this-many-times fewer surface samples a round: with
+/// [`JUDGING_POINT_STEP`], its points' matching of the samples had become most of the cost.
+const JUDGING_SAMPLE_STEP: usize = 4;
 
 /// The share of a request's fit rounds a candidate gets before it is judged.
 const JUDGING_ROUNDS_SHARE: f32 = 0.5;
@@ -209,6 +213,7 @@ impl Judge {
         let decoded = detokenize(&weld_near_corners(faces, self.ending.weld_radius), self.q);
         let judging = self.ending.fit.map(|fit| FitOptions {
             rounds: ((fit.rounds as f32 * JUDGING_ROUNDS_SHARE).ceil() as usize).max(1),
+            samples: (fit.samples / JUDGING_SAMPLE_STEP).max(1),
             ..fit
         });
         let mesh = match (self.compare, &judging, &self.judging_target) {

@@ -72,6 +72,15 @@ pub const BOUNDS_MARGIN: f32 = 1.0;
 /// good an estimate and keeps the cost bounded for large clouds.
 const SPACING_PROBES: usize = 1000;
 
+/// The most input points that pull in one round: with more, each round takes every k-th of
+/// them from a start that moves on each round, so that every point pulls once in k rounds.
+/// Why: finding each of a reconstruction's 16,384 reference points its nearest sample cost
+/// four times the samples' own matching. A 400-face fit took 72-78 ms against 155-204
+/// (`meshstream bench mesh`), and 44 dev meshes' Chamfer distance moved -0.0003 (standard
+/// error 0.0003; `docs/decisions.md`, "Fitting"). A fixed quarter of the points had cost
+/// +0.0011 (0.0004).
+const POINTS_PER_ROUND: usize = 2048;
+
 /// The share of a pull that goes along the surface rather than towards its tangent plane:
 /// a little, so that corners do not drift freely along flat sides.
 const TANGENTIAL_SHARE: f32 = 0.1;
@@ -108,7 +117,7 @@ pub fn fit_to_target(
     let (mut least, mut since_least) = (f32::INFINITY, 0);
     for round in 0..options.rounds {
         let samples = surface_samples(&fitted, options.samples, seed.wrapping_add(round as u64))?;
-        let pulls = Pulls::of(&fitted, &samples, target)?;
+        let pulls = Pulls::of(&fitted, &samples, target, round)?;
         let mut moved_by = 0.0f32;
         for (v, shift) in pulls.shifts().into_iter().enumerate() {
             let Some(shift) = shift else { continue };
@@ -144,9 +153,7 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// the cloud has none; zero where a given one is) and their k-d tree, and the bounds corners
 /// stay in (the cloud's, widened by [`BOUNDS_MARGIN`] of its spacing).
 ///
-/// Every point pulls: pulling towards every fourth of the 16,384 reference points, a quarter
-/// of a round's main cost, cost 44 dev meshes' Chamfer distance +0.0011 (standard error
-/// 0.0004; `docs/decisions.md`, "Fitting").
+/// Every point pulls, if not in every round (see [`POINTS_PER_ROUND`]).
 pub struct FitTarget {
     points: Vec<[f32; 3]>,
     normals: Vec<[f32; 3]>,
@@ -215,7 +222,12 @@ struct Pulls {
 }
 
 impl Pulls {
-    fn of(mesh: &Mesh, samples: &[SurfaceSample], target: &FitTarget) -> Result<Self, MeshError> {
+    fn of(
+        mesh: &Mesh,
+        samples: &[SurfaceSample],
+        target: &FitTarget,
+        round: usize,
+    ) -> Result<Self, MeshError> {
         let (points, normals) = (target.points.as_slice(), &target.normals);
         let n = mesh.vertices.len();
         let mut pulls = Pulls { a: vec![[[0.0; 3]; 3]; n], r: vec![[0.0; 3]; n] };
@@ -226,9 +238,11 @@ impl Pulls {
             let to = (points[nearest], normals[nearest]);
             pulls.add(mesh, &samples[i], positions[i], to, per_sample);
         }
-        let per_point = 1.0 / points.len() as f32;
+        let share: Vec<usize> = pulling_points(points.len(), round).collect();
+        let queries: Vec<[f32; 3]> = share.iter().map(|&j| points[j]).collect();
+        let per_point = 1.0 / share.len().max(1) as f32;
         let sample_tree = tree_of(&positions)?;
-        for (j, nearest) in nearest_in(&sample_tree, points).into_iter().enumerate() {
+        for (&j, nearest) in share.iter().zip(nearest_in(&sample_tree, &queries)) {
             let to = (points[j], normals[j]);
             pulls.add(mesh, &samples[nearest], positions[nearest], to, per_point);
         }
@@ -293,6 +307,13 @@ fn solve(a: &Mat3, r: [f32; 3]) -> Option<[f32; 3]> {
     Some(x.map(|c| c / (det * trace)))
 }
 
+/// The input points that pull in `round` of a fit to `count` of them: all of them up to
+/// [`POINTS_PER_ROUND`], else every k-th from a start that moves on by one each round.
+fn pulling_points(count: usize, round: usize) -> std::iter::StepBy<std::ops::Range<usize>> {
+    let step = count.div_ceil(POINTS_PER_ROUND).max(1);
+    (round % step..count).step_by(step)
+}
+
 fn tree_of(set: &[[f32; 3]]) -> Result<ImmutableKdTree<f32, 3>, MeshError> {
     ImmutableKdTree::new_from_slice(set)
         .map_err(|e| MeshError::invalid(format!("too many points to fit to: {e}")))
@@ -330,17 +351,34 @@ mod tests {
     #[test]
     fn a_box_a_little_off_fits_its_points() {
         let truth = cuboid([1.0, 0.6, 0.8]);
-        let cloud = sample_surface(&truth, 1024, 1).unwrap();
         let off = cuboid([0.94, 0.65, 0.8]).translated([0.02, 0.0, -0.01]);
-        let fitted = fit_to_points(&off, &cloud, &FitOptions::default(), 0).unwrap();
-        assert_eq!(fitted.faces, off.faces);
-        for (v, w) in fitted.vertices.iter().zip(&truth.vertices) {
-            for k in 0..3 {
-                assert!((v[k] - w[k]).abs() < 0.01, "corner {v:?}, should be {w:?}");
+        // Also with more points than pull in one round.
+        for points in [1024, 4 * POINTS_PER_ROUND + 3] {
+            let cloud = sample_surface(&truth, points, 1).unwrap();
+            let fitted = fit_to_points(&off, &cloud, &FitOptions::default(), 0).unwrap();
+            assert_eq!(fitted.faces, off.faces);
+            for (v, w) in fitted.vertices.iter().zip(&truth.vertices) {
+                for k in 0..3 {
+                    assert!((v[k] - w[k]).abs() < 0.01, "{points} points: corner {v:?}, not {w:?}");
+                }
             }
+            let (before, after) = (chamfer(&off, &truth), chamfer(&fitted, &truth));
+            assert!(after < 0.5 * before, "{points} points: Chamfer distance {before}, {after}");
         }
-        let (before, after) = (chamfer(&off, &truth), chamfer(&fitted, &truth));
-        assert!(after < 0.5 * before, "Chamfer distance {before} before, {after} after");
+    }
+
+    #[test]
+    fn every_point_pulls_once_in_as_many_rounds_as_it_takes_shares() {
+        for count in [0, 1, POINTS_PER_ROUND, POINTS_PER_ROUND + 1, 16_384, 50_001] {
+            let step = count.div_ceil(POINTS_PER_ROUND).max(1);
+            let mut pulled = vec![0; count];
+            for round in 7..7 + step {
+                let share: Vec<usize> = pulling_points(count, round).collect();
+                assert!(share.len() <= POINTS_PER_ROUND, "{count} points: {} pull", share.len());
+                share.into_iter().for_each(|j| pulled[j] += 1);
+            }
+            assert!(pulled.iter().all(|&n| n == 1), "{count} points");
+        }
     }
 
     #[test]
