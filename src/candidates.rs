@@ -54,8 +54,9 @@ const FIT_SAMPLES: usize = 4096;
 
 /// Candidates are judged after a cheaper fit than the one their winner gets: against every
 /// this-many-th reference point, with fewer samples ([`JUDGING_SAMPLE_STEP`]), for
-/// [`JUDGING_ROUNDS_SHARE`] of the rounds, and only the winner is then fitted in full. Why: fitting every candidate in
-/// full cost more than decoding them (`docs/decisions.md`, "Fitting").
+/// [`JUDGING_ROUNDS_SHARE`] of the rounds, and only the winner is then fitted in full. Why:
+/// fitting every candidate in full cost more than decoding them (`docs/decisions.md`,
+/// "Fitting").
 const JUDGING_POINT_STEP: usize = 4;
 
 /// Candidates are judged after a fit with this-many-times fewer surface samples a round: with

@@ -134,7 +134,7 @@ impl FaceModel {
 
     /// The encoder's linear layers, which run once per request on every point.
     pub(crate) fn encoder_dense_mut(&mut self) -> Vec<&mut Dense> {
-        self.dense_mut_by_stage().0
+        self.encoder.dense_mut()
     }
 
     /// The linear layers of the encoder, and those of the decoding.
