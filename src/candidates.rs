@@ -81,7 +81,8 @@ pub struct Candidate {
 /// Why: greedy decoding rebuilds simple shapes best, and which faces it finds depends on
 /// where the encoder's points fall: fitted, four greedy decodes of four draws rebuilt 702 of
 /// 710 boxes, prisms and pyramids where the greedy one plus three samples rebuilt 631. On real
-/// meshes samples cover more, hence the sampled default (`docs/decisions.md`, "Decoding").
+/// meshes samples cover more but make a soup of slivers, hence the greedy default
+/// (`docs/decisions.md`, "Decoding").
 pub fn candidate_sampling(base: &SamplingParams, n: usize) -> Vec<SamplingParams> {
     let greedy = SamplingParams { temperature: 0.0, ..base.clone() };
     (0..n.max(1))

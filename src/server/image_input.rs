@@ -33,7 +33,7 @@ pub struct GenerateOptions {
     /// Seed of the diffusion noise, and of the decoding when it samples.
     #[param(schema_with = seed_schema)]
     pub seed: Option<u64>,
-    /// Sampling temperature (default 1.2); 0 decodes greedily.
+    /// Sampling temperature (default 0: greedy decoding with the face beam).
     #[param(minimum = 0)]
     pub temperature: Option<f32>,
     #[param(minimum = 1)]

@@ -21,7 +21,7 @@ pub struct ReconstructOptions {
     /// Face budget (default and maximum: the server's limit, see `/v1/info`).
     #[param(minimum = 1)]
     pub max_faces: Option<usize>,
-    /// Sampling temperature (default 1.2); 0 decodes greedily.
+    /// Sampling temperature (default 0: greedy decoding with the face beam).
     #[param(minimum = 0)]
     pub temperature: Option<f32>,
     #[param(minimum = 1)]
@@ -190,7 +190,7 @@ pub fn output_format(name: Option<&str>) -> Result<Format, ApiError> {
     }
 }
 
-/// Decoding options from a request's fields, checked; sampled at [`DEFAULT_TEMPERATURE`] unless
+/// Decoding options from a request's fields, checked; at [`DEFAULT_TEMPERATURE`] (greedy) unless
 /// a temperature is given.
 pub fn decode_options(
     max_faces: Option<usize>,
@@ -377,12 +377,13 @@ mod tests {
     }
 
     #[test]
-    fn requests_sample_unless_they_ask_for_greedy_decoding() {
+    fn requests_decode_greedily_unless_they_ask_to_sample() {
         let points = r#""points": [[0,0,0],[1,0,0],[0,1,0]]"#;
         let temperature = |extra: &str| json(&format!("{{{points}{extra}}}")).unwrap();
         let default = temperature("").decode.sampling.temperature;
         assert_eq!(default, DEFAULT_TEMPERATURE);
-        assert_eq!(temperature(r#", "temperature": 0"#).decode.sampling.temperature, 0.0);
+        assert_eq!(default, 0.0);
+        assert_eq!(temperature(r#", "temperature": 1.2"#).decode.sampling.temperature, 1.2);
         assert_eq!(temperature(r#", "temperature": 0.4"#).decode.sampling.temperature, 0.4);
     }
 
