@@ -285,7 +285,9 @@ mod tests {
             let all: Vec<(usize, Partial)> = log_probs
                 .iter()
                 .enumerate()
-                .map(|(i, &l)| (i, Partial { row: 0, coords: [i as u16; 9], log_prob: f32::from(l) }))
+                .map(|(i, &l)| {
+                    (i, Partial { row: 0, coords: [i as u16; 9], log_prob: f32::from(l) })
+                })
                 .collect();
             let mut best = Vec::new();
             for &candidate in &all {
@@ -294,7 +296,9 @@ mod tests {
             let mut sorted = all.clone();
             sorted.sort_by(|a, b| b.1.log_prob.total_cmp(&a.1.log_prob));
             sorted.truncate(beam);
-            let key = |v: &[(usize, Partial)]| v.iter().map(|(i, p)| (*i, p.coords, p.log_prob)).collect::<Vec<_>>();
+            let key = |v: &[(usize, Partial)]| {
+                v.iter().map(|(i, p)| (*i, p.coords, p.log_prob)).collect::<Vec<_>>()
+            };
             prop_assert_eq!(key(&best), key(&sorted));
         }
     }
