@@ -228,6 +228,11 @@ async fn sixteen_concurrent_clients_are_batched() {
     let count = server.metric(&c, "meshstream_batch_size_count").await;
     let singles = server.metric(&c, "meshstream_batch_size_bucket{le=\"1.0\"}").await;
     assert!(count > singles, "no batch held more than one sequence ({singles} of {count})");
+    // Whole meshes with the defaults: every stage of their work was counted.
+    for stage in ["prepare", "encode", "decode", "end"] {
+        let metric = format!("meshstream_work_seconds_total{{stage=\"{stage}\"}}");
+        assert!(server.metric(&c, &metric).await > 0.0, "no {stage} work counted");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
-use meshstream::engine::{Engine, EngineConfig, Metrics};
+use meshstream::engine::{Engine, EngineConfig, Metrics, Stage};
 use meshstream::mesh::{Mesh, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, Quantize, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
@@ -62,6 +62,10 @@ pub struct ServeBenchArgs {
     also_http: Vec<SocketAddr>,
 }
 
+/// The stages whose work a level reports (see [`Metrics::add_work`]); the server measured has
+/// no image model.
+const WORK_STAGES: [Stage; 4] = [Stage::Prepare, Stage::Encode, Stage::Decode, Stage::End];
+
 /// What a client asks for.
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Interface {
@@ -109,7 +113,8 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         queue_timeout: Duration::from_secs(600),
         ..EngineConfig::default()
     };
-    let engine = Engine::start(model, None, config, Arc::new(Metrics::default()))?;
+    let metrics = Arc::new(Metrics::default());
+    let engine = Engine::start(model, None, config, Arc::clone(&metrics))?;
     let loopback = SocketAddr::from(([127, 0, 0, 1], 0));
     let serve_config = ServeConfig {
         http_addr: loopback,
@@ -152,6 +157,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             "first face p50",
             "p99",
             "answer p50",
+            "work s: prepare, encode, decode, end",
         ]);
         for &interface in &args.interface {
             let servers: Vec<(String, SocketAddr)> = match interface {
@@ -164,6 +170,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             for &clients in &args.concurrency {
                 let mut this_build = None;
                 for (i, (name, addr)) in servers.iter().enumerate() {
+                    let work_before = WORK_STAGES.map(|s| metrics.work_seconds(s));
                     let level = match interface {
                         Interface::Whole => whole_level(*addr, &cloud, args, clients).await?,
                         Interface::Stream => stream_level(*addr, &cloud, args, clients).await?,
@@ -188,6 +195,15 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
                     total.sort();
                     row.extend([percentile_ms(&first, 0.5), percentile_ms(&first, 0.99)]);
                     row.push(percentile_ms(&total, 0.5));
+                    // Only this build's engine is in this process.
+                    row.push(if i == 0 {
+                        let work = WORK_STAGES.map(|s| metrics.work_seconds(s));
+                        let spent =
+                            work.iter().zip(work_before).map(|(a, b)| format!("{:.1}", a - b));
+                        spent.collect::<Vec<_>>().join(", ")
+                    } else {
+                        "-".into()
+                    });
                     table.add_row(row);
                 }
             }

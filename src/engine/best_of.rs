@@ -16,6 +16,7 @@ use crate::mesh::FitOptions;
 use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
+use super::metrics::Stage;
 use super::{
     Completed, Conditioning, DecodeOptions, Engine, EngineError, Event, Request, RequestStream,
     StreamedFace,
@@ -69,9 +70,14 @@ pub(super) fn submit(
         .collect::<Result<Vec<_>, _>>()?;
     let (tx, rx) = mpsc::channel(engine.shared.config.stream_buffer);
     let q = engine.quantizer;
+    let metrics = Arc::clone(&engine.shared.metrics);
     runtime.spawn(async move {
         // Prepared while the candidates decode.
-        let judge = match off_runtime(move || Judge::new(q, cloud, ending, seed, n)).await {
+        let preparing = Arc::clone(&metrics);
+        let prepared = off_runtime(move || {
+            preparing.time(Stage::End, || Judge::new(q, cloud, ending, seed, n))
+        });
+        let judge = match prepared.await {
             Ok(judge) => Arc::new(judge),
             Err(e) => {
                 let _ = tx.send(Event::Failed(e)).await;
@@ -80,11 +86,11 @@ pub(super) fn submit(
         };
         // Each candidate is ended as soon as it is decoded, while the others still decode.
         let ended = candidates.into_iter().enumerate().map(|(index, candidate)| {
-            let judge = judge.clone();
+            let (judge, metrics) = (judge.clone(), Arc::clone(&metrics));
             async move {
                 let completed = candidate.collect().await?;
                 off_runtime(move || {
-                    let finished = judge.end(index, &completed.tokens);
+                    let finished = metrics.time(Stage::End, || judge.end(index, &completed.tokens));
                     (completed, finished)
                 })
                 .await
@@ -97,7 +103,9 @@ pub(super) fn submit(
         };
         // The winner is fitted in full: every candidate was judged after a cheaper fit.
         let won = match pick(ended) {
-            Ok((best, ended)) => off_runtime(move || (best, judge.finish(ended))).await,
+            Ok((best, ended)) => {
+                off_runtime(move || (best, metrics.time(Stage::End, || judge.finish(ended)))).await
+            }
             Err(e) => Err(e),
         };
         let event = match won {

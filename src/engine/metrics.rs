@@ -1,5 +1,8 @@
 //! Prometheus metrics of the engine and of the interfaces in front of it, in one registry.
 
+use std::sync::atomic::AtomicU64;
+use std::time::Duration;
+
 use prometheus_client::encoding::text::encode;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -8,6 +11,38 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 
 type ByReason = Family<Vec<(&'static str, &'static str)>, Counter>;
+type Seconds = Family<Vec<(&'static str, &'static str)>, Counter<f64, AtomicU64>>;
+
+/// A stage of the work requests take, as `meshstream_work_seconds_total` counts it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// An input's points for the encoder (sampling, farthest point sampling), one draw per
+    /// candidate, and the reference points.
+    Prepare,
+    /// The encoder, on the batch of requests starting together.
+    Encode,
+    /// Stepping the running sequences by one face.
+    Decode,
+    /// Diffusion steps of image requests.
+    Diffuse,
+    /// Ending candidates: welding, fitting their corners to the input, judging them.
+    End,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 5] =
+        [Stage::Prepare, Stage::Encode, Stage::Decode, Stage::Diffuse, Stage::End];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Prepare => "prepare",
+            Stage::Encode => "encode",
+            Stage::Decode => "decode",
+            Stage::Diffuse => "diffuse",
+            Stage::End => "end",
+        }
+    }
+}
 
 pub struct Metrics {
     registry: Registry,
@@ -23,6 +58,7 @@ pub struct Metrics {
     rejections: ByReason,
     failures: ByReason,
     finished: ByReason,
+    work: Seconds,
 }
 
 impl Default for Metrics {
@@ -41,6 +77,7 @@ impl Default for Metrics {
             rejections: ByReason::default(),
             failures: ByReason::default(),
             finished: ByReason::default(),
+            work: Seconds::default(),
             registry: Registry::default(),
         };
         registry.register("queue_depth", "Requests waiting to start", m.queue_depth.clone());
@@ -95,6 +132,17 @@ impl Default for Metrics {
             "Requests that completed, by why decoding stopped",
             m.finished.clone(),
         );
+        registry.register(
+            "work_seconds",
+            "Seconds spent in each stage of request work, by stage; the engine's stages \
+             (encode, decode, diffuse) run on up to --decode-threads cores at once, the others \
+             on one core per request",
+            m.work.clone(),
+        );
+        // Every stage is exported from the start, at 0 until it has run.
+        for stage in Stage::ALL {
+            let _ = m.work.get_or_create(&vec![("stage", stage.name())]);
+        }
         Self { registry, ..m }
     }
 }
@@ -110,6 +158,24 @@ impl Metrics {
 
     pub fn finish(&self, reason: &'static str) {
         self.finished.get_or_create(&vec![("reason", reason)]).inc();
+    }
+
+    /// Counts `took` as work of `stage`.
+    pub fn add_work(&self, stage: Stage, took: Duration) {
+        self.work.get_or_create(&vec![("stage", stage.name())]).inc_by(took.as_secs_f64());
+    }
+
+    /// Runs `work` and counts its time as work of `stage`.
+    pub fn time<T>(&self, stage: Stage, work: impl FnOnce() -> T) -> T {
+        let started = std::time::Instant::now();
+        let out = work();
+        self.add_work(stage, started.elapsed());
+        out
+    }
+
+    /// Seconds of work counted for `stage` so far.
+    pub fn work_seconds(&self, stage: Stage) -> f64 {
+        self.work.get_or_create(&vec![("stage", stage.name())]).get()
     }
 
     /// The Prometheus text exposition format.
@@ -131,7 +197,12 @@ mod tests {
         m.reject("queue_full");
         m.batch_size.observe(4.0);
         m.faces_generated.inc_by(7);
+        m.add_work(Stage::Decode, Duration::from_millis(250));
+        m.time(Stage::Decode, || ());
+        assert!((0.25..0.3).contains(&m.work_seconds(Stage::Decode)));
+        assert_eq!(m.work_seconds(Stage::End), 0.0);
         let text = m.render();
+        assert!(text.contains("meshstream_work_seconds_total{stage=\"decode\"} 0.25"));
         assert!(text.contains("meshstream_requests_rejected_total{reason=\"queue_full\"} 1"));
         assert!(text.contains("meshstream_faces_generated_total 7"));
         assert!(text.contains("meshstream_batch_size_count 1"));

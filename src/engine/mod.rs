@@ -39,7 +39,7 @@ use crate::tokenize::Quantizer;
 pub use config::EngineConfig;
 pub use error::EngineError;
 pub use memory::map_large_blocks;
-pub use metrics::Metrics;
+pub use metrics::{Metrics, Stage};
 pub use pools::{DecodePools, PartResult};
 pub use request::{
     Conditioning, DecodeOptions, EncoderPoints, ImagePrompt, PreparedPoints, Request,

@@ -17,7 +17,7 @@ use crate::tokenize::{Quantizer, face_positions};
 
 use super::admission::{Candidate, Capacity, admit};
 use super::diffusion_stage::DiffusionStage;
-use super::metrics::Metrics;
+use super::metrics::{Metrics, Stage};
 use super::pools::DecodePools;
 use super::request::{Conditioning, PreparedPoints, Request};
 use super::stream::{Event, StreamedFace, Summary};
@@ -273,7 +273,9 @@ impl Scheduler {
                 Conditioning::Image(_) => None,
             })
             .collect();
-        let latents = self.pools.wide().install(|| encode_batch(&self.model, &clouds));
+        let latents = metrics.time(Stage::Encode, || {
+            self.pools.wide().install(|| encode_batch(&self.model, &clouds))
+        });
         let prepare = now.elapsed();
         for (i, p) in points.into_iter().enumerate() {
             let latents = latents.as_ref().map_err(Clone::clone).and_then(|l| Ok(l.get(i)?));
@@ -292,7 +294,8 @@ impl Scheduler {
             return;
         }
         let metrics = Arc::clone(&self.shared.metrics);
-        let ready = self.pools.wide().install(|| stage.step(&metrics));
+        let ready =
+            metrics.time(Stage::Diffuse, || self.pools.wide().install(|| stage.step(&metrics)));
         for s in ready {
             self.begin_decoding(s.pending, Ok(s.latents), s.queued, s.prepare);
         }
@@ -372,7 +375,8 @@ impl Scheduler {
         }
         metrics.batch_size.observe(rows.len() as f64);
         let part = self.pools.part_size(rows.len());
-        let results = self.pools.step(&self.model, &mut rows, |a| &mut a.generation);
+        let results = metrics
+            .time(Stage::Decode, || self.pools.step(&self.model, &mut rows, |a| &mut a.generation));
         let now = Instant::now();
         for (part, result) in rows.chunks_mut(part).zip(results) {
             match result {

@@ -294,10 +294,15 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     fitted.options.fit_rounds = Some(20);
     let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
     let (points, normalization) = (p.encoder.points.clone(), p.normalization);
+    let work = |stage| engine.metrics().work_seconds(stage);
     let (plain, fitted) = runtime().block_on(async {
         let plain = engine.submit(plain).unwrap().collect().await.unwrap();
+        // Counted as work of its stages: nothing to end in a plain request.
+        assert!(work(Stage::Encode) > 0.0 && work(Stage::Decode) > 0.0);
+        assert_eq!(work(Stage::End), 0.0);
         (plain, engine.submit(fitted).unwrap().collect().await.unwrap())
     });
+    assert!(work(Stage::End) > 0.0, "fitting is counted as ending candidates");
     // The same faces as decoded without fitting (this model's have no flat polygons to split
     // again); only their corners moved.
     assert_eq!(fitted.tokens, plain.tokens);

@@ -32,7 +32,7 @@ use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
 
 use crate::diffusion::ImageOptions;
-use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints};
+use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints, Stage};
 use crate::mesh::Mesh;
 use crate::model::DEFAULT_TEMPERATURE;
 
@@ -147,7 +147,9 @@ pub(crate) fn prepare(
     candidates: usize,
 ) -> Result<Conditioning, ApiError> {
     let cfg = engine.model_config();
-    let points = PreparedPoints::from_mesh(input, cfg, limits.reference_points, seed, candidates)?;
+    let points = engine.metrics().time(Stage::Prepare, || {
+        PreparedPoints::from_mesh(input, cfg, limits.reference_points, seed, candidates)
+    })?;
     Ok(Conditioning::Points(points))
 }
 
