@@ -136,7 +136,7 @@ impl Default for Metrics {
             "work_seconds",
             "Seconds spent in each stage of request work, by stage; the engine's stages \
              (encode, decode, diffuse) run on up to --decode-threads cores at once, the others \
-             on one core per request",
+             on one core per task (a request's points, a candidate's ending)",
             m.work.clone(),
         );
         // Every stage is exported from the start, at 0 until it has run.
