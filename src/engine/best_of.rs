@@ -16,7 +16,7 @@ use crate::mesh::FitOptions;
 use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
-use super::metrics::Stage;
+use super::metrics::{Metrics, Stage};
 use super::{
     Completed, Conditioning, DecodeOptions, Engine, EngineError, Event, Request, RequestStream,
     StreamedFace,
@@ -73,10 +73,7 @@ pub(super) fn submit(
     let metrics = Arc::clone(&engine.shared.metrics);
     runtime.spawn(async move {
         // Prepared while the candidates decode.
-        let preparing = Arc::clone(&metrics);
-        let prepared = off_runtime(move || {
-            preparing.time(Stage::End, || Judge::new(q, cloud, ending, seed, n))
-        });
+        let prepared = off_runtime(&metrics, move || Judge::new(q, cloud, ending, seed, n));
         let judge = match prepared.await {
             Ok(judge) => Arc::new(judge),
             Err(e) => {
@@ -89,8 +86,8 @@ pub(super) fn submit(
             let (judge, metrics) = (judge.clone(), Arc::clone(&metrics));
             async move {
                 let completed = candidate.collect().await?;
-                off_runtime(move || {
-                    let finished = metrics.time(Stage::End, || judge.end(index, &completed.tokens));
+                off_runtime(&metrics, move || {
+                    let finished = judge.end(index, &completed.tokens);
                     (completed, finished)
                 })
                 .await
@@ -103,9 +100,7 @@ pub(super) fn submit(
         };
         // The winner is fitted in full: every candidate was judged after a cheaper fit.
         let won = match pick(ended) {
-            Ok((best, ended)) => {
-                off_runtime(move || (best, metrics.time(Stage::End, || judge.finish(ended)))).await
-            }
+            Ok((best, ended)) => off_runtime(&metrics, move || (best, judge.finish(ended))).await,
             Err(e) => Err(e),
         };
         let event = match won {
@@ -131,13 +126,15 @@ pub(super) fn submit(
 
 /// Runs CPU work (fitting and judging a candidate) on rayon's pool, one thread per core, off
 /// the async runtime: however many candidates finish together, they queue there rather than
-/// each taking a thread of their own from the decoding.
+/// each taking a thread of their own from the decoding. Its time counts as [`Stage::End`].
 async fn off_runtime<T: Send + 'static>(
+    metrics: &Arc<Metrics>,
     work: impl FnOnce() -> T + Send + 'static,
 ) -> Result<T, EngineError> {
     let (tx, rx) = tokio::sync::oneshot::channel();
+    let metrics = Arc::clone(metrics);
     rayon::spawn(move || {
-        let _ = tx.send(work());
+        let _ = tx.send(metrics.time(Stage::End, work));
     });
     rx.await.map_err(|_| EngineError::Model("ending a candidate failed".into()))
 }
