@@ -330,7 +330,7 @@ pub(crate) fn copy_into_varmap(dir: &Path, varmap: &VarMap, device: &Device) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::testing::{max_abs_diff, random_latents, random_model};
+    use crate::model::testing::{max_abs_diff, random_latents, random_model, seeded_model};
 
     fn outputs(model: &FaceModel, latents: &Tensor) -> Tensor {
         let mut s = model.start_sequence(latents).unwrap();
@@ -349,7 +349,7 @@ mod tests {
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&loaded, &latents)), 0.0);
 
         // Resume path: a fresh VarMap takes the saved weights.
-        let (fresh, _) = random_model(&cfg);
+        let (fresh, _) = seeded_model(&cfg, 1);
         load_into_varmap(dir.path(), &fresh, &Device::Cpu).unwrap();
         let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
@@ -401,7 +401,7 @@ mod tests {
         let loaded = load(sharded.path(), &Device::Cpu).unwrap();
         let latents = random_latents(&cfg, 1, 5);
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&loaded, &latents)), 0.0);
-        let (fresh, _) = random_model(&cfg);
+        let (fresh, _) = seeded_model(&cfg, 1);
         load_into_varmap(sharded.path(), &fresh, &Device::Cpu).unwrap();
         let resumed = inference_model(&cfg, &fresh, &Device::Cpu).unwrap();
         assert_eq!(max_abs_diff(&outputs(&model, &latents), &outputs(&resumed, &latents)), 0.0);
