@@ -54,7 +54,7 @@ const FIT_SAMPLES: usize = 4096;
 
 /// Candidates are judged after a cheaper fit than the one their winner gets: against every
 /// this-many-th reference point, with fewer samples ([`JUDGING_SAMPLE_STEP`]), for
-/// [`JUDGING_ROUNDS_SHARE`] of the rounds, and only the winner is then fitted in full. Why:
+/// [`JUDGING_ROUNDS_SHARE`] of the rounds, and only the winner's fit then goes on in full. Why:
 /// fitting every candidate in full cost more than decoding them (`docs/decisions.md`,
 /// "Fitting").
 const JUDGING_POINT_STEP: usize = 4;
@@ -168,8 +168,8 @@ pub struct Finished {
 /// How one reconstruction ends its candidates (welded, then fitted to its input points when
 /// asked) and judges them: prepared once, so that every candidate fits to the same prepared
 /// points, and each candidate can be ended on its own as soon as it is decoded ([`Self::end`]).
-/// When several are compared, each is judged after a cheaper fit and only the winner is
-/// fitted in full ([`Self::finish`]; see [`JUDGING_POINT_STEP`]).
+/// When several are compared, each is judged after a cheaper fit and only the winner's fit
+/// goes on in full ([`Self::finish`]; see [`JUDGING_POINT_STEP`]).
 pub struct Judge {
     q: Quantizer,
     cloud: Arc<Mesh>,
@@ -214,7 +214,7 @@ impl Judge {
         let started = std::time::Instant::now();
         let decoded = detokenize(&weld_near_corners(faces, self.ending.weld_radius), self.q);
         let judging = self.ending.fit.map(|fit| FitOptions {
-            rounds: ((fit.rounds as f32 * JUDGING_ROUNDS_SHARE).ceil() as usize).max(1),
+            rounds: judging_rounds(&fit),
             samples: (fit.samples / JUDGING_SAMPLE_STEP).max(1),
             ..fit
         });
@@ -238,13 +238,23 @@ impl Judge {
         Finished { index, decoded, mesh, distance }
     }
 
-    /// The candidate that won, as it is returned: fitted in full from its decoded corners
-    /// when it was judged after the cheaper fit (the mesh it would have ended as alone).
+    /// The candidate that won, as it is returned: when it was judged after the cheaper fit,
+    /// its fit goes on from there against every point for the rounds that fit left.
+    ///
+    /// Why go on rather than fit its decoded corners afresh: the cheaper fit has already
+    /// done most of the moving, and refitting cost about as much as fitting all candidates.
     pub fn finish(&self, winner: Finished) -> Finished {
-        if !self.compare {
-            return winner;
+        match (self.compare, &self.ending.fit, &self.target, &self.judging_target) {
+            (true, Some(fit), Some(target), Some(_)) => {
+                let done = judging_rounds(fit);
+                let rest = FitOptions { rounds: fit.rounds.saturating_sub(done).max(1), ..*fit };
+                // Rounds draw their samples from the seed plus their number: these go on.
+                let seed = self.seed.wrapping_add(done as u64);
+                Finished { mesh: fitted_mesh(&winner.mesh, self.q, target, &rest, seed), ..winner }
+            }
+            (true, ..) => Finished { mesh: self.fitted(&winner.decoded), ..winner },
+            (false, ..) => winner,
         }
-        Finished { mesh: self.fitted(&winner.decoded), ..winner }
     }
 
     /// `decoded` fitted in full when fitting, else as it is.
@@ -254,6 +264,11 @@ impl Judge {
             _ => decoded.clone(),
         }
     }
+}
+
+/// The rounds of a fit with `fit`'s options that a candidate gets before it is judged.
+fn judging_rounds(fit: &FitOptions) -> usize {
+    ((fit.rounds as f32 * JUDGING_ROUNDS_SHARE).ceil() as usize).max(1)
 }
 
 /// The finished candidate closest to the input points: the first (lowest index) on ties.
@@ -422,7 +437,7 @@ mod tests {
     }
 
     #[test]
-    fn candidates_are_judged_after_a_cheaper_fit_and_the_winner_is_fitted_in_full() {
+    fn candidates_are_judged_after_a_cheaper_fit_and_the_winner_s_fit_goes_on_in_full() {
         let q = Quantizer::new(128).unwrap();
         let cloud = sample_surface(&cuboid([1.6, 1.6, 1.6]), 4096, 3).unwrap();
         let small = tokenize(&cuboid([1.28, 1.28, 1.28]), q).faces;
@@ -439,7 +454,12 @@ mod tests {
         let winner = closest(ended.clone()).unwrap();
         assert_eq!(winner.index, 0);
         let finished = judge.finish(winner.clone());
-        assert_eq!(finished.mesh, in_full(&winner));
+        // The rounds the cheaper fit left, against every point, from where it ended.
+        let done = judging_rounds(&fit);
+        let rest = FitOptions { rounds: fit.rounds - done, ..fit };
+        assert_eq!(finished.mesh, fitted_mesh(&winner.mesh, q, &target, &rest, done as u64));
+        let distance = |m: &Mesh| input_distance(m, &cloud.vertices, 0);
+        assert!(distance(&finished.mesh) < distance(&winner.mesh));
         assert_eq!((finished.index, finished.distance), (winner.index, winner.distance));
         let best = closest_finished([&small[..], half].into_iter(), q, &cloud, &ending, 0);
         assert_eq!(best, Some(finished));

@@ -98,7 +98,7 @@ pub(super) fn submit(
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
-        // The winner is fitted in full: every candidate was judged after a cheaper fit.
+        // The winner's fit goes on in full: every candidate was judged after a cheaper fit.
         let won = match pick(ended) {
             Ok((best, ended)) => off_runtime(&metrics, move || (best, judge.finish(ended))).await,
             Err(e) => Err(e),
