@@ -37,45 +37,81 @@ fn canonical_completion_exists(prefix: &[u16], q: u64) -> bool {
 /// that is above v0, differs from v1, is off the line through them, makes the face exceed
 /// `prev`, and does not repeat an earlier face (v0, v2, v1) with the opposite winding?
 fn last_vertex_exists(prefix: &[u16], earlier: &[FaceToken], q: u64) -> bool {
-    let v0 = rank(&prefix[..3], 0, q);
-    let v1 = rank(&prefix[3..6], 0, q);
-    if v1 <= v0 {
+    let Some(rule) = LastVertex::new(&prefix[..6], earlier, q) else {
         return false;
-    }
-    let mut lo = rank(&prefix[6..], 0, q).max(v0 + 1);
-    let hi = rank(&prefix[6..], q as u16 - 1, q);
-    if let Some(prev) = earlier.last() {
-        match prefix[..6].cmp(&prev[..6]) {
-            std::cmp::Ordering::Less => return false,
-            std::cmp::Ordering::Equal => lo = lo.max(rank(&prev[6..], 0, q) + 1),
-            std::cmp::Ordering::Greater => {}
-        }
-    }
-    if lo > hi {
+    };
+    let Some((lo, hi)) = rule.range(&prefix[6..], q) else {
         return false;
-    }
-    // Faces sharing v0 form the tail of a sorted sequence.
-    let mut excluded: Vec<u64> = earlier
-        .iter()
-        .rev()
-        .take_while(|f| f[..3] == prefix[..3])
-        .filter(|f| f[6..] == prefix[3..6])
-        .map(|f| rank(&f[3..6], 0, q))
-        .filter(|w| (lo..=hi).contains(w) && *w != v1)
-        .collect();
-    excluded.sort_unstable();
-    excluded.dedup();
-    let taken = u64::from((lo..=hi).contains(&v1)) + excluded.len() as u64;
+    };
     let span = hi - lo + 1;
     // A line meets the grid in at most q points: only a narrow range can run out of them.
-    if span > taken + q {
-        return true;
+    span > rule.taken_within(lo, hi) + q
+        || span > rule.with_line(&prefix[..6], q).taken_within(lo, hi)
+}
+
+/// What a face's last vertex v2 may be once v0 and v1 are fixed: a rank above `floor` and
+/// none of `taken`. Built once for all the values of a v2 coordinate (see
+/// [`allowed_values`]): the flat-face line alone is up to q grid points to walk.
+struct LastVertex {
+    /// v2 must be above v0, and above prev's v2 when the face starts as prev does.
+    floor: u64,
+    /// Sorted ranks v2 may not take: v1, the v2 of opposite windings of earlier faces, and
+    /// once [`Self::with_line`] has added them, the grid points on the line through v0 and v1.
+    taken: Vec<u64>,
+}
+
+impl LastVertex {
+    /// The rule after the sequence `earlier` for the first two vertices `v0v1` (6
+    /// coordinates), without the line; `None` when no v2 can complete them (v1 not above v0,
+    /// or the face would come before prev).
+    fn new(v0v1: &[u16], earlier: &[FaceToken], q: u64) -> Option<Self> {
+        let v0 = rank(&v0v1[..3], 0, q);
+        let v1 = rank(&v0v1[3..], 0, q);
+        if v1 <= v0 {
+            return None;
+        }
+        let mut floor = v0;
+        if let Some(prev) = earlier.last() {
+            match v0v1.cmp(&prev[..6]) {
+                std::cmp::Ordering::Less => return None,
+                std::cmp::Ordering::Equal => floor = floor.max(rank(&prev[6..], 0, q)),
+                std::cmp::Ordering::Greater => {}
+            }
+        }
+        // Faces sharing v0 form the tail of a sorted sequence.
+        let windings = earlier
+            .iter()
+            .rev()
+            .take_while(|f| f[..3] == v0v1[..3])
+            .filter(|f| f[6..] == v0v1[3..])
+            .map(|f| rank(&f[3..6], 0, q));
+        let mut taken: Vec<u64> = windings.chain([v1]).collect();
+        taken.sort_unstable();
+        taken.dedup();
+        Some(Self { floor, taken })
     }
-    let on_line = line_beyond(&prefix[..3], &prefix[3..6], q)
-        .map(|p| rank(&p, 0, q))
-        .filter(|w| (lo..=hi).contains(w) && *w != v1 && excluded.binary_search(w).is_err())
-        .count();
-    span > taken + on_line as u64
+
+    /// The rule with the points of the line through v0 and v1 taken too (flat faces).
+    fn with_line(mut self, v0v1: &[u16], q: u64) -> Self {
+        self.taken.extend(line_beyond(&v0v1[..3], &v0v1[3..], q).map(|p| rank(&p, 0, q)));
+        self.taken.sort_unstable();
+        self.taken.dedup();
+        self
+    }
+
+    /// The ranks (lo, hi) of the v2 that complete `part` (its first coordinates) within the
+    /// floor; `None` when there are none.
+    fn range(&self, part: &[u16], q: u64) -> Option<(u64, u64)> {
+        let lo = rank(part, 0, q).max(self.floor + 1);
+        let hi = rank(part, q as u16 - 1, q);
+        (lo <= hi).then_some((lo, hi))
+    }
+
+    /// How many of `lo..=hi` are taken.
+    fn taken_within(&self, lo: u64, hi: u64) -> u64 {
+        let below = |bound: u64| self.taken.partition_point(|&w| w < bound);
+        (below(hi + 1) - below(lo)) as u64
+    }
 }
 
 /// The grid points after `v0` on the line through `v0` and `v1` (v1 > v0), in order: the
@@ -156,10 +192,21 @@ pub fn allowed_values(
     let mut candidate = Vec::with_capacity(COORDS_PER_FACE);
     candidate.extend_from_slice(prefix);
     candidate.push(0);
+    // At v2's coordinates every value shares v0 and v1, and so the rule for v2: built once,
+    // it decides each value as `completion_exists` would.
+    let last_vertex = (prefix.len() >= 6)
+        .then(|| LastVertex::new(&prefix[..6], earlier, q as u64))
+        .map(|rule| rule.map(|rule| rule.with_line(&prefix[..6], q as u64)));
     let mut count = 0;
     for (v, slot) in allowed.iter_mut().enumerate() {
         candidate[prefix.len()] = v as u16;
-        *slot = completion_exists(&candidate, earlier, q);
+        *slot = match &last_vertex {
+            None => completion_exists(&candidate, earlier, q),
+            Some(None) => false,
+            Some(Some(rule)) => rule
+                .range(&candidate[6..], q as u64)
+                .is_some_and(|(lo, hi)| hi - lo + 1 > rule.taken_within(lo, hi)),
+        };
         count += usize::from(*slot);
     }
     count
@@ -247,6 +294,30 @@ mod tests {
             } else {
                 prop_assert!(ours || !brute, "ruled out a possible face");
             }
+        }
+
+        /// At v2's coordinates one rule decides every value: as the exact check would, value
+        /// by value.
+        #[test]
+        fn v2_masks_agree_with_the_check_of_each_value(
+            q in 2usize..=6,
+            picks in proptest::collection::vec(any::<usize>(), 0..40),
+            prefix in proptest::collection::vec(0u16..6, 6..=8),
+        ) {
+            let earlier = sequence_from(&all_canonical(q as u16), &picks);
+            let mut prefix: Vec<u16> = prefix.into_iter().map(|c| c.min(q as u16 - 1)).collect();
+            let mut allowed = Vec::new();
+            let n = allowed_values(&prefix, &earlier, q, &mut allowed);
+            let each: Vec<bool> = (0..q as u16)
+                .map(|v| {
+                    prefix.push(v);
+                    let ok = completion_exists(&prefix, &earlier, q);
+                    prefix.pop();
+                    ok
+                })
+                .collect();
+            prop_assert_eq!(&allowed, &each);
+            prop_assert_eq!(n, each.iter().filter(|&&a| a).count());
         }
 
         /// Walking the masks with arbitrary choices: a face that has started finds a value at
