@@ -267,11 +267,9 @@ fn hostile_headers_fail_fast_even_without_limits() {
             let start = Instant::now();
             let result = read_mesh(&bytes, format, limits);
             assert!(result.is_err(), "{format}: {result:?}");
-            assert!(
-                start.elapsed() < Duration::from_millis(200),
-                "{format}: {:?}",
-                start.elapsed()
-            );
+            // Refused from the header, before allocating what it promises: well under a
+            // second even on a busy test machine.
+            assert!(start.elapsed() < Duration::from_secs(2), "{format}: {:?}", start.elapsed());
         }
     }
 }

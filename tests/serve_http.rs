@@ -256,9 +256,13 @@ async fn a_client_that_goes_away_frees_its_slot() {
         if server.metric(&c, "meshstream_running_sequences").await == 0.0 {
             break;
         }
-        assert!(t0.elapsed() < Duration::from_secs(1), "the slot is still taken");
+        // Loose: shared test machines are slow; the counter below says why it ended.
+        assert!(t0.elapsed() < Duration::from_secs(10), "the slot is still taken");
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+    // Cancelled, not decoded to its end.
+    let cancelled = "meshstream_requests_finished_total{reason=\"cancelled\"}";
+    assert_eq!(server.metric(&c, cancelled).await, 1.0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
