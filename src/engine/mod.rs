@@ -6,8 +6,9 @@
 //!   (429 when full)  (fits? aged?)   ("prefill")     (one face per row      (bounded channel;
 //!                                                      per iteration)        closed = cancel)
 //! ```
-//! Model work never runs on the async runtime: the scheduler has its own thread, and parts of
-//! the running batch are stepped in parallel on its own thread pool. A client's channel is
+//! Model work never runs on the async runtime: the scheduler has its own thread, parts of the
+//! running batch are stepped in parallel on its own thread pool, and admitted point requests
+//! are encoded on a thread of their own meanwhile. A client's channel is
 //! bounded; a sequence whose client is behind is not stepped until it catches up, and a
 //! dropped [`RequestStream`] cancels its request before the next step.
 
@@ -15,6 +16,7 @@ mod admission;
 mod best_of;
 mod config;
 mod diffusion_stage;
+mod encode_stage;
 mod error;
 mod memory;
 mod metrics;
@@ -23,8 +25,7 @@ mod request;
 mod scheduler;
 mod stream;
 
-use std::collections::VecDeque;
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -46,7 +47,7 @@ pub use request::{
 };
 pub use stream::{Completed, Event, RequestStream, StreamedFace, Summary};
 
-use scheduler::{Pending, QueueState, Scheduler, Shared};
+use scheduler::{Pending, Scheduler, Shared};
 
 /// Guidance scales above this only push the sampler off the data.
 pub const MAX_GUIDANCE: f32 = 20.0;
@@ -97,18 +98,8 @@ impl Engine {
             .map_err(|_| EngineError::Model("quantization levels out of range".into()))?;
         let quantizer = Quantizer::new(levels).map_err(|e| EngineError::Model(e.to_string()))?;
         let pools = DecodePools::new(config.threads())?;
-        let shared = Arc::new(Shared {
-            queue: Mutex::new(QueueState {
-                waiting: VecDeque::new(),
-                running: 0,
-                closing: None,
-                stopped: false,
-            }),
-            wake: Condvar::new(),
-            config,
-            metrics,
-        });
-        let scheduler = Scheduler::new(model, diffusion, quantizer, Arc::clone(&shared), pools);
+        let shared = Arc::new(Shared::new(config, metrics));
+        let scheduler = Scheduler::new(model, diffusion, quantizer, Arc::clone(&shared), pools)?;
         let thread = std::thread::Builder::new()
             .name("engine-scheduler".into())
             .spawn(move || scheduler.run())

@@ -17,11 +17,16 @@ use crate::tokenize::{Quantizer, face_positions};
 
 use super::admission::{Candidate, Capacity, admit};
 use super::diffusion_stage::DiffusionStage;
+use super::encode_stage::EncodeStage;
 use super::metrics::{Metrics, Stage};
 use super::pools::DecodePools;
-use super::request::{Conditioning, PreparedPoints, Request};
+use super::request::{Conditioning, Request};
 use super::stream::{Event, StreamedFace, Summary};
 use super::{EngineConfig, EngineError};
+
+/// The longest the scheduler waits for an encoded batch before it looks at the queue again
+/// (timeouts, shutdown); a finished batch wakes it at once.
+const ENCODING_WAIT: Duration = Duration::from_millis(50);
 
 /// A request accepted into the queue.
 pub(super) struct Pending {
@@ -48,6 +53,13 @@ pub(super) struct Shared {
 }
 
 impl Shared {
+    /// An empty queue.
+    pub fn new(config: EngineConfig, metrics: Arc<Metrics>) -> Self {
+        let queue =
+            QueueState { waiting: VecDeque::new(), running: 0, closing: None, stopped: false };
+        Self { queue: Mutex::new(queue), wake: Condvar::new(), config, metrics }
+    }
+
     /// The queue, even if a thread panicked while holding it (its state stays consistent:
     /// every change is a single push, pop or assignment).
     pub fn lock(&self) -> MutexGuard<'_, QueueState> {
@@ -104,6 +116,8 @@ pub(super) struct Scheduler {
     shared: Arc<Shared>,
     pools: DecodePools,
     running: Vec<Active>,
+    /// Point requests before decoding.
+    encoding: EncodeStage,
     /// Image requests before decoding; `None` when the engine has no image model.
     diffusion: Option<DiffusionStage>,
 }
@@ -115,15 +129,17 @@ impl Scheduler {
         quantizer: Quantizer,
         shared: Arc<Shared>,
         pools: DecodePools,
-    ) -> Self {
+    ) -> Result<Self, EngineError> {
         let diffusion = diffusion.map(DiffusionStage::new);
-        Self { model, quantizer, shared, pools, running: Vec::new(), diffusion }
+        let encoding = EncodeStage::start(model.clone(), Arc::clone(&shared))?;
+        Ok(Self { model, quantizer, shared, pools, running: Vec::new(), encoding, diffusion })
     }
 
     pub fn run(mut self) {
         while let Some(admitted) = self.next_admissions() {
             let admitted_any = !admitted.is_empty();
             self.start(admitted);
+            self.begin_encoded();
             if admitted_any {
                 // Seen before their first face, so a status never lags behind the stream.
                 self.publish_running();
@@ -146,14 +162,24 @@ impl Scheduler {
             metrics.fail("shutting_down");
         }
         self.running.clear();
+        self.encoding.fail_all(EngineError::ShuttingDown, metrics);
         if let Some(stage) = &mut self.diffusion {
             stage.fail_all(EngineError::ShuttingDown, metrics);
         }
     }
 
-    /// Started requests: decoding, or in the diffusion stage before it.
+    /// Started requests: decoding, or in a stage before it (encoding, diffusion).
     fn started(&self) -> usize {
-        self.running.len() + self.diffusion.as_ref().map_or(0, DiffusionStage::len)
+        self.running.len()
+            + self.encoding.len()
+            + self.diffusion.as_ref().map_or(0, DiffusionStage::len)
+    }
+
+    /// Whether only encoder passes are under way: nothing to step or diffuse meanwhile.
+    fn only_encoding(&self) -> bool {
+        self.running.is_empty()
+            && self.diffusion.as_ref().is_none_or(|d| d.len() == 0)
+            && self.encoding.len() > 0
     }
 
     fn publish_running(&self) {
@@ -224,6 +250,7 @@ impl Scheduler {
                 continue;
             }
             let reserved: usize = self.running.iter().map(|a| a.faces_reserved).sum::<usize>()
+                + self.encoding.faces_reserved()
                 + self.diffusion.as_ref().map_or(0, DiffusionStage::faces_reserved);
             let free = Capacity {
                 slots: cfg.max_running.saturating_sub(self.started()),
@@ -237,6 +264,17 @@ impl Scheduler {
                 .collect();
             let picked = admit(&candidates, free, cfg.aging);
             // Remove from the back so earlier indices stay valid, then restore queue order.
+            if picked.is_empty() && self.only_encoding() && !self.encoding.has_results() {
+                // Nothing to admit, step or hand on until a batch is encoded (or a request
+                // comes): wait for it rather than spin. The bound re-checks the queue's
+                // timeouts and shutdown meanwhile.
+                let (guard, _) = shared
+                    .wake
+                    .wait_timeout(q, ENCODING_WAIT)
+                    .unwrap_or_else(|poisoned| poisoned.into_inner());
+                q = guard;
+                continue;
+            }
             let mut admitted: Vec<Pending> =
                 picked.iter().rev().filter_map(|&i| q.waiting.remove(i)).collect();
             admitted.reverse();
@@ -245,7 +283,7 @@ impl Scheduler {
         }
     }
 
-    /// Point requests: encoded in one batch, then decoded. Image requests: join the
+    /// Point requests: sent to the encoder thread in one batch. Image requests: join the
     /// diffusion batch.
     fn start(&mut self, admitted: Vec<Pending>) {
         let now = Instant::now();
@@ -263,24 +301,14 @@ impl Scheduler {
                 }
             }
         }
-        if points.is_empty() {
-            return;
-        }
-        let clouds: Vec<&PreparedPoints> = points
-            .iter()
-            .filter_map(|p| match &p.request.conditioning {
-                Conditioning::Points(points) => Some(points),
-                Conditioning::Image(_) => None,
-            })
-            .collect();
-        let latents = metrics.time(Stage::Encode, || {
-            self.pools.wide().install(|| encode_batch(&self.model, &clouds))
-        });
-        let prepare = now.elapsed();
-        for (i, p) in points.into_iter().enumerate() {
-            let latents = latents.as_ref().map_err(Clone::clone).and_then(|l| Ok(l.get(i)?));
-            let queued = now - p.submitted;
-            self.begin_decoding(p, latents, queued, prepare);
+        self.encoding.submit(points, now, &metrics);
+    }
+
+    /// The point requests whose latents have come back from the encoder thread start
+    /// decoding.
+    fn begin_encoded(&mut self) {
+        for e in self.encoding.take(Instant::now()) {
+            self.begin_decoding(e.pending, e.latents, e.queued, e.prepare);
         }
     }
 
@@ -421,21 +449,4 @@ impl Scheduler {
         }
         self.running.retain(|a| !a.done);
     }
-}
-
-/// Latent sets (B, K, latent_dim) of clouds that all have the model's point and query counts.
-pub(super) fn encode_batch(
-    model: &FaceModel,
-    clouds: &[&PreparedPoints],
-) -> Result<Tensor, EngineError> {
-    let device = model.device();
-    let (b, m, k) = (clouds.len(), model.config().num_points, model.config().num_latents);
-    let flat = |pick: fn(&PreparedPoints) -> &[[f32; 3]]| -> Vec<f32> {
-        clouds.iter().flat_map(|c| pick(c).iter().flatten().copied()).collect()
-    };
-    let points = Tensor::from_vec(flat(|c| &c.encoder.points), (b, m, 3), device)?;
-    let normals = Tensor::from_vec(flat(|c| &c.encoder.normals), (b, m, 3), device)?;
-    let queries: Vec<u32> = clouds.iter().flat_map(|c| c.encoder.queries.iter().copied()).collect();
-    let queries = Tensor::from_vec(queries, (b, k), device)?;
-    Ok(model.encode(&points, &normals, &queries)?)
 }

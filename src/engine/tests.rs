@@ -50,7 +50,7 @@ fn reference_faces(model: &FaceModel, request: &Request, max_faces: usize) -> Ve
 }
 
 fn scheduler_encode(model: &FaceModel, p: &PreparedPoints) -> candle_core::Tensor {
-    scheduler::encode_batch(model, &[p]).unwrap()
+    encode_stage::encode_batch(model, &[&p.encoder]).unwrap()
 }
 
 fn runtime() -> tokio::runtime::Runtime {
