@@ -8,9 +8,9 @@
 //! ```
 //! Model work never runs on the async runtime: the scheduler has its own thread, parts of the
 //! running batch are stepped in parallel on its own thread pool, and admitted point requests
-//! are encoded on a thread of their own meanwhile. A client's channel is
-//! bounded; a sequence whose client is behind is not stepped until it catches up, and a
-//! dropped [`RequestStream`] cancels its request before the next step.
+//! are encoded on a thread of their own meanwhile. A client's channel is bounded; a sequence
+//! whose client is behind is not stepped until it catches up, and a dropped
+//! [`RequestStream`] cancels its request before the next step.
 
 mod admission;
 mod best_of;

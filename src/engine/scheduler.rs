@@ -263,7 +263,6 @@ impl Scheduler {
                 .map(|p| Candidate { faces: p.faces, waited: now - p.submitted })
                 .collect();
             let picked = admit(&candidates, free, cfg.aging);
-            // Remove from the back so earlier indices stay valid, then restore queue order.
             if picked.is_empty() && self.only_encoding() && !self.encoding.has_results() {
                 // Nothing to admit, step or hand on until a batch is encoded (or a request
                 // comes): wait for it rather than spin. The bound re-checks the queue's
@@ -275,6 +274,7 @@ impl Scheduler {
                 q = guard;
                 continue;
             }
+            // Remove from the back so earlier indices stay valid, then restore queue order.
             let mut admitted: Vec<Pending> =
                 picked.iter().rev().filter_map(|&i| q.waiting.remove(i)).collect();
             admitted.reverse();
