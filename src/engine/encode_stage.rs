@@ -72,8 +72,15 @@ impl EncodeStage {
             .spawn(move || {
                 for job in job_rx {
                     let clouds: Vec<&EncoderPoints> = job.clouds.iter().collect();
-                    let latents =
-                        shared.metrics.time(Stage::Encode, || encode_batch(&model, &clouds));
+                    let encode = || encode_batch(&model, &clouds);
+                    // A panic fails this batch's requests, not the thread and every request
+                    // after them.
+                    let latents = shared.metrics.time(Stage::Encode, || {
+                        std::panic::catch_unwind(std::panic::AssertUnwindSafe(encode))
+                            .unwrap_or_else(|_| {
+                                Err(EngineError::Model("the encoder failed on this batch".into()))
+                            })
+                    });
                     if done_tx.send(Done { id: job.id, latents }).is_err() {
                         return;
                     }
@@ -260,6 +267,26 @@ mod tests {
             assert!(max_abs_diff(latents, expected) < 1e-4, "{}", e.pending.request.id);
         }
         assert!(shared.metrics.work_seconds(Stage::Encode) > 0.0);
+    }
+
+    #[test]
+    fn a_batch_the_encoder_cannot_take_fails_its_requests() {
+        let (_, model) = random_model(&FaceConfig::micro());
+        let shared = shared();
+        let mut stage = EncodeStage::start(model.clone(), Arc::clone(&shared)).unwrap();
+        let (mut request, _rx) = pending(&model, 0.5);
+        if let Conditioning::Points(points) = &mut request.request.conditioning {
+            points.encoder.points.truncate(5);
+        }
+        stage.submit(vec![request], Instant::now(), &shared.metrics);
+        wait_for(&mut stage, 1);
+        let encoded = stage.take(Instant::now());
+        assert!(matches!(encoded.as_slice(), [Encoded { latents: Err(_), .. }]));
+        // The thread goes on with the next batch.
+        let (request, _rx) = pending(&model, 0.5);
+        stage.submit(vec![request], Instant::now(), &shared.metrics);
+        wait_for(&mut stage, 1);
+        assert!(stage.take(Instant::now())[0].latents.is_ok());
     }
 
     #[test]
