@@ -52,7 +52,7 @@ pub struct ServeArgs {
     /// Sum of the running sequences' face budgets (bounds cache memory).
     #[arg(long, env = "MESHSTREAM_MAX_BATCH_FACES", default_value_t = 65536)]
     max_batch_faces: usize,
-    /// Requests encoded per scheduler iteration.
+    /// Requests sent to the encoder, as one batch, per scheduler iteration.
     #[arg(long, env = "MESHSTREAM_MAX_ENCODES_PER_ITERATION", default_value_t = 4)]
     max_encodes_per_iteration: usize,
     /// Seconds a request may wait in the queue.

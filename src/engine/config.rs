@@ -15,7 +15,8 @@ pub struct EngineConfig {
     pub max_faces_per_request: usize,
     /// Sum of the face budgets of the running sequences: bounds the decoder caches' memory.
     pub max_batch_faces: usize,
-    /// Requests encoded in one iteration, so that running streams keep a steady pace.
+    /// Requests sent to the encoder (as one batch) in one iteration: a smaller batch comes
+    /// back sooner.
     pub max_encodes_per_iteration: usize,
     /// A request waiting this long is refused rather than started.
     #[serde(with = "secs")]

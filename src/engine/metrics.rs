@@ -134,9 +134,9 @@ impl Default for Metrics {
         );
         registry.register(
             "work_seconds",
-            "Seconds spent in each stage of request work, by stage; the engine's stages \
-             (encode, decode, diffuse) run on up to --decode-threads cores at once, the others \
-             on one core per task (a request's points, a candidate's ending)",
+            "Seconds spent in each stage of request work, by stage; decode and diffuse run \
+             on up to --decode-threads cores at once, the others on one core per task (an \
+             encoder batch, a request's points, a candidate's ending)",
             m.work.clone(),
         );
         // Every stage is exported from the start, at 0 until it has run.

@@ -12,7 +12,7 @@ use super::EngineError;
 const MIN_ROWS_PER_THREAD: usize = 4;
 
 pub struct DecodePools {
-    /// One thread per core (or `decode_threads`): parts of the batch in parallel, encoding,
+    /// One thread per core (or `decode_threads`): parts of the batch in parallel, and
     /// diffusion.
     wide: rayon::ThreadPool,
     single: rayon::ThreadPool,
@@ -37,7 +37,7 @@ impl DecodePools {
         })
     }
 
-    /// The pool for work that uses every thread (encoding, diffusion).
+    /// The pool for work that uses every thread (diffusion).
     pub fn wide(&self) -> &rayon::ThreadPool {
         &self.wide
     }

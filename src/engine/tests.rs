@@ -40,7 +40,7 @@ fn request_with_draws(model: &FaceModel, id: usize, max_faces: usize, draws: usi
 /// What one request decodes alone, without the engine.
 fn reference_faces(model: &FaceModel, request: &Request, max_faces: usize) -> Vec<FaceToken> {
     let Conditioning::Points(p) = &request.conditioning else { unreachable!() };
-    let latents = scheduler_encode(model, p);
+    let latents = engine_encode(model, p);
     let opts = GenerateOptions { max_faces, ..GenerateOptions::default() };
     let mut g = Generation::new(model, &latents, opts).unwrap();
     while !g.is_finished() {
@@ -49,7 +49,7 @@ fn reference_faces(model: &FaceModel, request: &Request, max_faces: usize) -> Ve
     g.faces().to_vec()
 }
 
-fn scheduler_encode(model: &FaceModel, p: &PreparedPoints) -> candle_core::Tensor {
+fn engine_encode(model: &FaceModel, p: &PreparedPoints) -> candle_core::Tensor {
     encode_stage::encode_batch(model, &[&p.encoder]).unwrap()
 }
 
@@ -260,7 +260,7 @@ fn a_best_of_request_streams_the_candidate_closest_to_its_points() {
         .into_iter()
         .enumerate()
         .map(|(i, o)| {
-            let latents = scheduler_encode(&model, &p.for_candidate(i));
+            let latents = engine_encode(&model, &p.for_candidate(i));
             generate(&model, &latents, o, |_| ControlFlow::Continue(())).unwrap().0
         })
         .collect();

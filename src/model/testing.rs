@@ -41,42 +41,41 @@ struct SeededInit {
 impl SeededInit {
     fn values(&self, shape: &Shape, init: Init) -> candle_core::Result<Vec<f32>> {
         let n = shape.elem_count();
-        let mut rng = self.rng.lock().unwrap_or_else(|p| p.into_inner());
-        let draw = |d: &dyn Fn(&mut ChaCha8Rng) -> f64, rng: &mut ChaCha8Rng| {
-            (0..n).map(|_| d(rng) as f32).collect::<Vec<f32>>()
-        };
-        let normal = |mean: f64, std: f64| {
-            Normal::new(mean, std).map_err(|e| candle_core::Error::Msg(e.to_string()))
-        };
-        let uniform = |lo: f64, up: f64| {
-            Uniform::new(lo, up).map_err(|e| candle_core::Error::Msg(e.to_string()))
-        };
-        Ok(match init {
-            Init::Const(v) => vec![v as f32; n],
-            Init::Uniform { lo, up } => {
-                let u = uniform(lo, up)?;
-                draw(&|r| u.sample(r), &mut rng)
-            }
-            Init::Randn { mean, stdev } => {
-                let d = normal(mean, stdev)?;
-                draw(&|r| d.sample(r), &mut rng)
-            }
+        let draw = match init {
+            Init::Const(v) => return Ok(vec![v as f32; n]),
+            Init::Uniform { lo, up } => Draw::Uniform(lo, up),
+            Init::Randn { mean, stdev } => Draw::Normal(mean, stdev),
             Init::Kaiming { dist, fan, non_linearity } => {
                 let std = non_linearity.gain() / (fan.for_shape(shape) as f64).sqrt();
                 match dist {
-                    NormalOrUniform::Normal => {
-                        let d = normal(0.0, std)?;
-                        draw(&|r| d.sample(r), &mut rng)
-                    }
+                    NormalOrUniform::Normal => Draw::Normal(0.0, std),
                     NormalOrUniform::Uniform => {
                         let bound = 3f64.sqrt() * std;
-                        let u = uniform(-bound, bound)?;
-                        draw(&|r| u.sample(r), &mut rng)
+                        Draw::Uniform(-bound, bound)
                     }
                 }
             }
+        };
+        let msg = |e: &dyn std::fmt::Display| candle_core::Error::Msg(e.to_string());
+        let mut rng = self.rng.lock().unwrap_or_else(|p| p.into_inner());
+        let rng = &mut *rng;
+        Ok(match draw {
+            Draw::Normal(mean, std) => {
+                let d = Normal::new(mean, std).map_err(|e| msg(&e))?;
+                d.sample_iter(rng).take(n).map(|x| x as f32).collect()
+            }
+            Draw::Uniform(lo, up) => {
+                let d = Uniform::new(lo, up).map_err(|e| msg(&e))?;
+                d.sample_iter(rng).take(n).map(|x| x as f32).collect()
+            }
         })
     }
+}
+
+/// The distribution a random `Init` draws from.
+enum Draw {
+    Normal(f64, f64),
+    Uniform(f64, f64),
 }
 
 impl SimpleBackend for SeededInit {
