@@ -231,6 +231,7 @@ impl Judge {
         tracing::debug!(
             index,
             faces = faces.len(),
+            distance,
             fit_ms = fitted.as_secs_f64() * 1e3,
             judge_ms = (started.elapsed() - fitted).as_secs_f64() * 1e3,
             "candidate ended"

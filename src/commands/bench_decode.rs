@@ -9,6 +9,7 @@ use std::time::Instant;
 use anyhow::Context;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
+use meshstream::candidates::DEFAULT_CANDIDATES;
 use meshstream::engine::{DecodePools, EngineConfig};
 use meshstream::mesh::primitives::uv_sphere;
 use meshstream::mesh::{farthest_point_sampling, sample_surface};
@@ -152,6 +153,38 @@ fn variants(
 
 /// Best of `rounds` for every variant, the variants taking turns so that a busy machine slows
 /// them alike.
+/// The encoder's time for the clouds of a whole mesh's candidates, each in a pass of its own
+/// (as the engine encodes on the CPU) against all in one pass, best of `rounds` each.
+fn encode_whole_mesh(
+    pools: &DecodePools,
+    model: &FaceModel,
+    points: &Tensor,
+    cloud: &[[f32; 3]],
+    rounds: usize,
+) -> anyhow::Result<String> {
+    let k = model.config().num_latents;
+    let queries: Vec<u32> =
+        farthest_point_sampling(cloud, k, 0).into_iter().map(|i| i as u32).collect();
+    let queries = Tensor::from_vec(queries, (1, k), points.device())?;
+    let pass = |clouds: usize| -> anyhow::Result<f64> {
+        let points = Tensor::cat(&vec![points.clone(); clouds], 0)?;
+        let queries = Tensor::cat(&vec![queries.clone(); clouds], 0)?;
+        let t = Instant::now();
+        pools.wide().install(|| model.encode(&points, &points, &queries))?;
+        Ok(t.elapsed().as_secs_f64())
+    };
+    let (mut each, mut together) = (f64::INFINITY, f64::INFINITY);
+    for _ in 0..rounds.max(1) {
+        let mut spent = 0.0;
+        for _ in 0..DEFAULT_CANDIDATES {
+            spent += pass(1)?;
+        }
+        each = each.min(spent);
+        together = together.min(pass(DEFAULT_CANDIDATES)?);
+    }
+    Ok(format!("{:.1} vs {:.1} ms ({:.2}x)", each * 1e3, together * 1e3, together / each))
+}
+
 fn best_of<T>(
     rounds: usize,
     variants: &[(Quantize, FaceModel)],
@@ -256,6 +289,10 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
             cfg.num_points, cfg.num_latents
         ),
         compare(&variants, &ms, "ms", false),
+    ]);
+    table.add_row(vec![
+        format!("encode a whole mesh's {DEFAULT_CANDIDATES} clouds (f32): a pass each (served) vs one pass"),
+        encode_whole_mesh(&pools, &model, &points, &cloud, args.rounds)?,
     ]);
     let greedy = Decoding { sampling: SamplingParams::greedy(), constrained: false, face_beam: 1 };
     decode_face(&pools, &model, &latents, 1, 8, &greedy)?; // warm-up

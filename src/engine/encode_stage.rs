@@ -184,11 +184,27 @@ fn fail(pendings: Vec<Pending>, error: &EngineError, metrics: &Metrics) {
     }
 }
 
+/// Clouds one encoder pass takes on the CPU. Why one at a time: a pass over a whole mesh's 4
+/// clouds took 1.66x as long as 4 passes of one, its intermediates (attention weights over
+/// every point of every cloud) mapped and faulted in afresh (`docs/decisions.md`, "Where a
+/// loaded server's time goes"). A GPU takes the batch whole.
+const CPU_CLOUDS_PER_PASS: usize = 1;
+
 /// Latent sets (B, K, latent_dim) of clouds that all have the model's point and query counts.
 pub(super) fn encode_batch(
     model: &FaceModel,
     clouds: &[&EncoderPoints],
 ) -> Result<Tensor, EngineError> {
+    let per_pass = if model.device().is_cpu() { CPU_CLOUDS_PER_PASS } else { clouds.len() };
+    let latents = clouds
+        .chunks(per_pass.max(1))
+        .map(|pass| encode_pass(model, pass))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Tensor::cat(&latents, 0)?)
+}
+
+/// One encoder pass over `clouds`: (B, K, latent_dim).
+fn encode_pass(model: &FaceModel, clouds: &[&EncoderPoints]) -> Result<Tensor, EngineError> {
     let device = model.device();
     let (b, m, k) = (clouds.len(), model.config().num_points, model.config().num_latents);
     let flat = |pick: fn(&EncoderPoints) -> &[[f32; 3]]| -> Vec<f32> {
