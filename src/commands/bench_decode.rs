@@ -151,8 +151,6 @@ fn variants(
         .collect()
 }
 
-/// Best of `rounds` for every variant, the variants taking turns so that a busy machine slows
-/// them alike.
 /// The encoder's time for the clouds of a whole mesh's candidates, each in a pass of its own
 /// (as the engine encodes on the CPU) against all in one pass, best of `rounds` each.
 fn encode_whole_mesh(
@@ -185,6 +183,8 @@ fn encode_whole_mesh(
     Ok(format!("{:.1} vs {:.1} ms ({:.2}x)", each * 1e3, together * 1e3, together / each))
 }
 
+/// Best of `rounds` for every variant, the variants taking turns so that a busy machine slows
+/// them alike.
 fn best_of<T>(
     rounds: usize,
     variants: &[(Quantize, FaceModel)],
