@@ -55,6 +55,9 @@ pub struct ServeBenchArgs {
     /// The engine's decode threads (0: one per core).
     #[arg(long, default_value_t = 0)]
     decode_threads: usize,
+    /// Sequences the engine decodes together, as `serve --max-running`.
+    #[arg(long, default_value_t = EngineConfig::default().max_running)]
+    max_running: usize,
     /// A running server's HTTP address (host:port) whose whole meshes are measured too, at
     /// each level right after this build's; repeat for more. Start it with the same model
     /// and a long --queue-timeout.
@@ -110,6 +113,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     // but for as long as it takes (a loaded machine is measured, not refused).
     let config = EngineConfig {
         decode_threads: args.decode_threads,
+        max_running: args.max_running,
         queue_timeout: Duration::from_secs(600),
         ..EngineConfig::default()
     };

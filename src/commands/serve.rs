@@ -41,7 +41,7 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_LOG_FORMAT", value_enum, default_value = "text")]
     log_format: LogFormat,
     /// Sequences decoded together.
-    #[arg(long, env = "MESHSTREAM_MAX_RUNNING", default_value_t = 16)]
+    #[arg(long, env = "MESHSTREAM_MAX_RUNNING", default_value_t = EngineConfig::default().max_running)]
     max_running: usize,
     /// Requests waiting to start; more are refused with 429.
     #[arg(long, env = "MESHSTREAM_MAX_QUEUE", default_value_t = 64)]
