@@ -60,7 +60,8 @@ fn a_ci_sized_soak_loses_nothing_and_gives_its_memory_back() {
 
 #[test]
 fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
-    // As many clients as the server runs and queues (16 + 16): nobody is refused.
+    // As many clients as the server runs and queues (16 + 16; both set here, whatever the
+    // defaults): nobody is refused.
     let at_capacity = soak(&[
         "--requests",
         "64",
@@ -71,6 +72,7 @@ fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
         "--leave-share",
         "0",
         "--serve-arg=--max-queue=16",
+        "--serve-arg=--max-running=16",
     ]);
     // Twice that: the rest are refused with 429 and come back after Retry-After.
     let overloaded = soak(&[
@@ -83,6 +85,7 @@ fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
         "--leave-share",
         "0",
         "--serve-arg=--max-queue=16",
+        "--serve-arg=--max-running=16",
     ]);
     // Nothing lost; each request completed or, after 30 tries, was refused as the queue was
     // full (a client may keep arriving when others have just taken the room).
