@@ -169,7 +169,7 @@ pub struct Finished {
 /// asked) and judges them: prepared once, so that every candidate fits to the same prepared
 /// points, and each candidate can be ended on its own as soon as it is decoded ([`Self::end`]).
 /// When several are compared, each is judged after a cheaper fit and only the winner's fit
-/// goes on in full ([`Self::finish`]; see [`JUDGING_POINT_STEP`]).
+/// goes on in full ([`Self::finish`]; see `JUDGING_POINT_STEP`).
 pub struct Judge {
     q: Quantizer,
     cloud: Arc<Mesh>,

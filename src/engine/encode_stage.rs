@@ -192,7 +192,7 @@ fn fail(pendings: Vec<Pending>, error: &EngineError, metrics: &Metrics) {
 const CPU_CLOUDS_PER_PASS: usize = 1;
 
 /// Latent sets (B, K, latent_dim) of clouds that all have the model's point and query counts.
-/// On the CPU each cloud gets a pass of its own ([`CPU_CLOUDS_PER_PASS`]), the passes in
+/// On the CPU each cloud gets a pass of its own (`CPU_CLOUDS_PER_PASS`), the passes in
 /// parallel on rayon's pool (one thread per core): while one whole mesh's 4 clouds encode,
 /// nothing else keeps the second core busy, and one whole-mesh client answered p50 in 538,
 /// 515 and 526 ms against 575, 561 and 564 (`docs/decisions.md`, "Serving").

@@ -21,7 +21,7 @@ pub const TRIM_AFTER_IDLE: Duration = Duration::from_secs(1);
 /// Blocks from this size up get a mapping of their own, handed back to the system when freed.
 pub const MAP_FROM_BYTES: usize = 1 << 20;
 
-/// Fixes glibc's mmap threshold at [`MAP_FROM_BYTES`] unless the caller chose one
+/// Fixes glibc's mmap threshold at `MAP_FROM_BYTES` unless the caller chose one
 /// (`MALLOC_MMAP_THRESHOLD_`, or `GLIBC_TUNABLES`), so that large blocks never settle in a
 /// thread's arena. The first thing a server should do, before it loads a model. Measured with
 /// a CI-sized `bench soak` (160 requests, 8 clients), three runs each: resident memory at

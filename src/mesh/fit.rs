@@ -39,7 +39,7 @@ pub struct FitOptions {
     /// on average than the least a round had moved them before (0: every round runs). The
     /// mean move levels off at the sampling noise within a few rounds (a sixth to a third of
     /// a cell on the shipped model's meshes, by the mesh: no fixed threshold fits all), yet
-    /// the later rounds still bring the mesh closer; see [`PATIENCE`].
+    /// the later rounds still bring the mesh closer; see `PATIENCE`.
     pub patience: usize,
     /// Surface samples per round.
     pub samples: usize,
@@ -151,9 +151,9 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// What corners are fitted to, prepared once for every round and every mesh fitted to the
 /// same cloud (a reconstruction's candidates): its points, their unit normals (estimated when
 /// the cloud has none; zero where a given one is) and their k-d tree, and the bounds corners
-/// stay in (the cloud's, widened by [`BOUNDS_MARGIN`] of its spacing).
+/// stay in (the cloud's, widened by `BOUNDS_MARGIN` of its spacing).
 ///
-/// Every point pulls, if not in every round (see [`POINTS_PER_ROUND`]).
+/// Every point pulls, if not in every round (see `POINTS_PER_ROUND`).
 pub struct FitTarget {
     points: Vec<[f32; 3]>,
     normals: Vec<[f32; 3]>,
