@@ -206,7 +206,7 @@ pub fn encode_batch(model: &FaceModel, clouds: &[&EncoderPoints]) -> Result<Tens
 }
 
 /// One encoder pass over `clouds`: (B, K, latent_dim).
-fn encode_pass(model: &FaceModel, clouds: &[&EncoderPoints]) -> Result<Tensor, EngineError> {
+pub fn encode_pass(model: &FaceModel, clouds: &[&EncoderPoints]) -> Result<Tensor, EngineError> {
     let device = model.device();
     let (b, m, k) = (clouds.len(), model.config().num_points, model.config().num_latents);
     let flat = |pick: fn(&EncoderPoints) -> &[[f32; 3]]| -> Vec<f32> {

@@ -38,7 +38,7 @@ use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
 use crate::tokenize::Quantizer;
 
 pub use config::EngineConfig;
-pub use encode_stage::encode_batch;
+pub use encode_stage::{encode_batch, encode_pass};
 pub use error::EngineError;
 pub use memory::map_large_blocks;
 pub use metrics::{Metrics, Stage};
