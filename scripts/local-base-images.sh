@@ -48,8 +48,10 @@ make_debian() {
     command -v debootstrap >/dev/null || { echo "debootstrap is not installed" >&2; exit 1; }
     rm -rf "$root"
     mkdir -p "$WORK"
+    # debootstrap reports any failed extraction, a full disk included, as "file already exists":
+    # the free space goes with its log.
     debootstrap --variant=minbase bookworm "$root" "$(mirror)" >"$WORK/debootstrap.log" 2>&1 ||
-        { tail -n 20 "$WORK/debootstrap.log" >&2; exit 1; }
+        { tail -n 20 "$WORK/debootstrap.log" >&2; df -h "$WORK" >&2; exit 1; }
     # What the official slim image also leaves out: apt's caches and lists.
     rm -rf "$root"/var/cache/apt/archives/*.deb "$root"/var/lib/apt/lists/*
     tar -C "$root" -c . | "$DOCKER" import --change 'CMD ["bash"]' - "$DEBIAN_IMAGE" >/dev/null
