@@ -35,15 +35,10 @@ pub fn map_large_blocks() {
         if chosen {
             return;
         }
-        unsafe extern "C" {
-            fn mallopt(param: std::ffi::c_int, value: std::ffi::c_int) -> std::ffi::c_int;
-        }
-        /// glibc's `M_MMAP_THRESHOLD`.
-        const M_MMAP_THRESHOLD: std::ffi::c_int = -3;
         // SAFETY: mallopt only sets glibc's own tunables, under its lock; 1 MiB is within the
         // range it accepts (up to 32 MiB on 64-bit).
         unsafe {
-            mallopt(M_MMAP_THRESHOLD, MAP_FROM_BYTES as std::ffi::c_int);
+            libc::mallopt(libc::M_MMAP_THRESHOLD, MAP_FROM_BYTES as libc::c_int);
         }
     }
 }
@@ -52,12 +47,9 @@ pub fn map_large_blocks() {
 pub fn release_free_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
-        unsafe extern "C" {
-            fn malloc_trim(pad: usize) -> std::ffi::c_int;
-        }
         // SAFETY: malloc_trim only walks glibc's own heap under its locks; any pad is valid.
         unsafe {
-            malloc_trim(0);
+            libc::malloc_trim(0);
         }
     }
 }
