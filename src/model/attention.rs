@@ -119,6 +119,34 @@ impl Dense {
         })
     }
 
+    /// The weight (out, in) and bias as f32 values, whatever the layer stores (a quantized
+    /// weight dequantized), detached from any training graph.
+    pub fn values(&self) -> Result<(Tensor, Option<Tensor>)> {
+        Ok(match self {
+            Self::Train(lin) => (lin.weight().detach(), lin.bias().map(Tensor::detach)),
+            Self::Infer { weight, bias, .. } => (weight.clone(), bias.clone()),
+            Self::Quantized { weight, bias, .. } => {
+                (weight.dequantize(&weight.device())?, bias.clone())
+            }
+        })
+    }
+
+    /// Whether the layer's weights are training variables (they change as it trains).
+    pub fn is_training(&self) -> bool {
+        matches!(self, Self::Train(_))
+    }
+
+    /// An f32 inference layer of the weight (out, in), derived from others rather than read
+    /// (its name says so).
+    fn derived(name: String, weight: &Tensor, bias: Option<Tensor>) -> Result<Self> {
+        Ok(Self::Infer {
+            name,
+            weight: weight.contiguous()?,
+            weight_t: weight.t()?.contiguous()?,
+            bias,
+        })
+    }
+
     /// The quantized weight, if this layer has one.
     pub fn quantized_weight(&self) -> Option<&Arc<QTensor>> {
         match self {
@@ -471,11 +499,74 @@ impl CrossAttention {
         self.out.forward(&merge_heads(&attend(&q, k, v, None)?)?)
     }
 
-    /// x (B, 1, d); row `r` attends to its own memory `memories[r]` ((1, H, K, hd) each), so
-    /// rows of different requests share one call.
-    pub fn step(&self, x: &Tensor, memories: &[(Tensor, Tensor)]) -> Result<Tensor> {
-        let q = split_heads(&self.q.forward(x)?, self.heads)?;
-        self.out.forward(&merge_heads(&attend_rows(&q, memories)?)?)
+    /// This layer folded onto the latents that `up` lifts to its memory, for decoding one
+    /// position at a time (see [`LatentCrossAttention`]). Its projections have no biases (see
+    /// [`Self::new`]); `up`'s bias is folded in.
+    pub fn on_latents(&self, up: &Dense) -> Result<LatentCrossAttention> {
+        // In f64, so that the folded weights round once.
+        let f64_of = |t: &Tensor| t.to_dtype(DType::F64);
+        let (up_w, up_b) = up.values()?;
+        let (u, lift) = (f64_of(&up_w)?, up_b.map(|b| f64_of(&b)).transpose()?);
+        let (d, latent) = u.dims2()?;
+        let (heads, hd) = (self.heads, d / self.heads);
+        let wq = f64_of(&self.q.values()?.0)?.reshape((heads, hd, d))?;
+        let wkv = f64_of(&self.kv.values()?.0)?;
+        let (wk, wv) = (wkv.narrow(0, 0, d)?, wkv.narrow(0, d, d)?);
+        let wo = f64_of(&self.out.values()?.0)?;
+        // Head h's keys are latents x (Wk_h U)^T plus a constant, which the softmax drops, so
+        // its scores are latents . (Wk_h U)^T q_h. The softmax scale stays head_dim's.
+        let keys = wk.reshape((heads, hd, d))?.broadcast_matmul(&u)?;
+        let scale = (latent as f64 / hd as f64).sqrt();
+        let query = (keys.transpose(1, 2)?.matmul(&wq)? * scale)?.reshape((heads * latent, d))?;
+        // Its output is Wo_h (Wv_h U) (weighted latents) + Wo_h Wv_h u, the weights summing to 1.
+        let values = wv.reshape((heads, hd, d))?.broadcast_matmul(&u)?;
+        let wo_h = wo.reshape((d, heads, hd))?.transpose(0, 1)?.contiguous()?;
+        let out = wo_h.matmul(&values)?.transpose(0, 1)?.reshape((d, heads * latent))?;
+        let bias =
+            lift.map(|b| wo.matmul(&wv.matmul(&b.unsqueeze(1)?)?)?.squeeze(1)).transpose()?;
+        let f32_of = |t: Tensor| t.to_dtype(DType::F32);
+        let name = |from: &Dense| format!("{} folded onto the latents", from.name().unwrap_or("?"));
+        Ok(LatentCrossAttention {
+            query: Dense::derived(name(&self.q), &f32_of(query)?, None)?,
+            out: Dense::derived(name(&self.out), &f32_of(out)?, bias.map(f32_of).transpose()?)?,
+            heads,
+        })
+    }
+}
+
+/// Cross-attention folded onto the latents it attends to, as DeepSeek-V2's multi-head latent
+/// attention absorbs its projections: each head's query is mapped to latent_dim and attends to
+/// the latents themselves, and the weighted latents are mapped to the output. Why: decoding,
+/// every row of a step reads its own memory; as keys and values of every layer that is 2 x
+/// layers x K x width floats a row (1 MiB for the shipped model, read from memory at every
+/// step), as latents K x latent_dim (32 KiB, one set for every layer). The two folded
+/// projections replace the query and output ones (the same multiply-adds where heads x
+/// latent_dim = width, as in the shipped model), and nothing is computed per sequence when it
+/// starts.
+#[derive(Debug, Clone)]
+pub struct LatentCrossAttention {
+    /// d -> heads x latent_dim.
+    query: Dense,
+    /// heads x latent_dim -> d.
+    out: Dense,
+    heads: usize,
+}
+
+impl LatentCrossAttention {
+    /// x (B, 1, d); row `r` attends to its own latents `latents[r]` ((1, K, latent_dim) each),
+    /// so rows of different requests share one call.
+    pub fn step(&self, x: &Tensor, latents: &[Tensor]) -> Result<Tensor> {
+        let q = split_heads(&self.query.forward(x)?, self.heads)?;
+        let memories = latents
+            .iter()
+            .map(|l| {
+                let (_, k, latent) = l.dims3()?;
+                // Every head attends to the same latents: a view, not a copy.
+                let l = l.unsqueeze(1)?.broadcast_as((1, self.heads, k, latent))?;
+                Ok((l.clone(), l))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        self.out.forward(&merge_heads(&attend_rows(&q, &memories)?)?)
     }
 }
 

@@ -13,30 +13,23 @@ pub const KV_CHUNK: usize = 128;
 pub struct LayerCache {
     /// Keys and values of the positions seen so far, (1, H, len, hd) each.
     pub(crate) self_kv: KvCache,
-    /// Cross-attention keys and values of this sequence's latents, (1, H, K, hd) each:
-    /// computed once when the sequence starts.
-    pub(crate) cross_k: Tensor,
-    pub(crate) cross_v: Tensor,
 }
 
 /// The decoder's state for one sequence.
 #[derive(Debug, Clone)]
 pub struct DecoderCache {
+    /// The latents the sequence is conditioned on, (1, K, latent_dim): what every layer's
+    /// cross-attention attends to.
+    pub(crate) latents: Tensor,
     pub(crate) layers: Vec<LayerCache>,
     len: usize,
 }
 
 impl DecoderCache {
-    pub(crate) fn new(cross: Vec<(Tensor, Tensor)>) -> Self {
-        let layers = cross
-            .into_iter()
-            .map(|(cross_k, cross_v)| LayerCache {
-                self_kv: KvCache::new(2, KV_CHUNK),
-                cross_k,
-                cross_v,
-            })
-            .collect();
-        Self { layers, len: 0 }
+    pub(crate) fn new(latents: Tensor, layers: usize) -> Self {
+        let layers =
+            (0..layers).map(|_| LayerCache { self_kv: KvCache::new(2, KV_CHUNK) }).collect();
+        Self { latents, layers, len: 0 }
     }
 
     /// Positions processed so far.
@@ -63,14 +56,8 @@ impl DecoderCache {
             .sum()
     }
 
-    /// Bytes held by the precomputed cross-attention keys and values.
+    /// Bytes held for cross-attention: the latents.
     pub fn cross_attention_bytes(&self) -> usize {
-        self.layers
-            .iter()
-            .map(|l| {
-                (l.cross_k.elem_count() + l.cross_v.elem_count())
-                    * l.cross_k.dtype().size_in_bytes()
-            })
-            .sum()
+        self.latents.elem_count() * self.latents.dtype().size_in_bytes()
     }
 }

@@ -2,11 +2,16 @@
 //! causal self-attention (RoPE), cross-attention to the latents, and an MLP. Only the token
 //! embedding and the output head differ between the two models.
 
+use std::borrow::Cow;
+use std::sync::OnceLock;
+
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
 use candle_nn::kv_cache::KvCache;
 
-use super::attention::{CrossAttention, Dense, Mlp, Norm, Rope, SelfAttention, causal_mask};
+use super::attention::{
+    CrossAttention, Dense, LatentCrossAttention, Mlp, Norm, Rope, SelfAttention, causal_mask,
+};
 use super::cache::DecoderCache;
 use super::config::FaceConfig;
 use super::{ModelError, Result};
@@ -50,6 +55,9 @@ pub struct DecoderStack {
     rope: Rope,
     latent_dim: usize,
     width: usize,
+    /// Every layer's cross-attention folded onto the latents, for [`Self::step`]: made from the
+    /// weights on first use.
+    on_latents: OnceLock<Vec<LatentCrossAttention>>,
 }
 
 impl DecoderStack {
@@ -65,11 +73,14 @@ impl DecoderStack {
             rope: Rope::new(d.head_dim(), max_positions, cfg.rope_theta, vb.device())?,
             latent_dim: cfg.latent_dim,
             width: d.width,
+            on_latents: OnceLock::new(),
         })
     }
 
     /// Every linear layer, in checkpoint order.
     pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
+        // The caller may change them (quantize them): fold them again when next used.
+        self.on_latents = OnceLock::new();
         let mut layers = vec![&mut self.latent_up];
         layers.extend(self.layers.iter_mut().flat_map(DecoderLayer::dense_mut));
         layers
@@ -89,8 +100,24 @@ impl DecoderStack {
         }
     }
 
-    /// A fresh cache for one sequence conditioned on `latents` (1, K, latent_dim): the
-    /// cross-attention keys and values of every layer are computed here, once.
+    /// Every layer's cross-attention folded onto the latents; made again on every call while
+    /// the weights are training variables, which change as they train.
+    fn on_latents(&self) -> Result<Cow<'_, [LatentCrossAttention]>> {
+        if let Some(folded) = self.on_latents.get() {
+            return Ok(Cow::Borrowed(folded));
+        }
+        let folded = self
+            .layers
+            .iter()
+            .map(|l| l.cross_attn.on_latents(&self.latent_up))
+            .collect::<Result<Vec<_>>>()?;
+        if self.latent_up.is_training() {
+            return Ok(Cow::Owned(folded));
+        }
+        Ok(Cow::Borrowed(self.on_latents.get_or_init(|| folded)))
+    }
+
+    /// A fresh cache for one sequence conditioned on `latents` (1, K, latent_dim).
     pub fn start(&self, latents: &Tensor) -> Result<DecoderCache> {
         self.check_latents(latents)?;
         if latents.dim(0)? != 1 {
@@ -99,16 +126,7 @@ impl DecoderStack {
                 latents.dims()
             )));
         }
-        let memory = self.latent_up.forward(latents)?;
-        let cross = self
-            .layers
-            .iter()
-            .map(|l| {
-                let (k, v) = l.cross_attn.memory_kv(&memory)?;
-                Ok((k.detach(), v.detach()))
-            })
-            .collect::<Result<_>>()?;
-        Ok(DecoderCache::new(cross))
+        Ok(DecoderCache::new(latents.detach(), self.layers.len()))
     }
 
     /// Whole sequences at once (teacher forcing, or the reference for cached decoding):
@@ -168,18 +186,16 @@ impl DecoderStack {
             return Err(ModelError::SequenceTooLong { position: p, limit: self.max_positions() });
         }
         let rope = self.rope.rows(&positions)?;
+        let on_latents = self.on_latents()?;
+        // Cheap handles (reference-counted storage), not copies.
+        let latents: Vec<Tensor> = caches.iter().map(|c| c.latents.clone()).collect();
         let mut x = x.clone();
-        for (i, l) in self.layers.iter().enumerate() {
+        for ((i, l), cross) in self.layers.iter().enumerate().zip(on_latents.iter()) {
             let h = l.self_norm.forward(&x)?;
             let mut kv: Vec<&mut KvCache> =
                 caches.iter_mut().map(|c| &mut c.layers[i].self_kv).collect();
             x = (&x + l.self_attn.step(&h, &rope, &mut kv)?)?;
-            // Cheap handles (reference-counted storage), not copies.
-            let memories: Vec<(Tensor, Tensor)> = caches
-                .iter()
-                .map(|c| (c.layers[i].cross_k.clone(), c.layers[i].cross_v.clone()))
-                .collect();
-            x = (&x + l.cross_attn.step(&l.cross_norm.forward(&x)?, &memories)?)?;
+            x = (&x + cross.step(&l.cross_norm.forward(&x)?, &latents)?)?;
             x = (&x + l.mlp.forward(&l.mlp_norm.forward(&x)?)?)?;
         }
         for c in caches.iter_mut() {

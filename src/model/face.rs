@@ -15,7 +15,7 @@ use super::head::CausalHead;
 use super::{FaceToken, ModelError, Result};
 
 /// One sequence being decoded: its decoder cache (self-attention keys/values per layer and the
-/// cross-attention keys/values of its latents) and the faces decoded so far. The engine owns
+/// latents its cross-attention attends to) and the faces decoded so far. The engine owns
 /// it; the model only reads and extends it.
 #[derive(Debug, Clone)]
 pub struct SequenceState {
@@ -178,7 +178,6 @@ impl FaceModel {
     }
 
     /// A new sequence conditioned on one latent set, (K, latent_dim) or (1, K, latent_dim).
-    /// Its cross-attention keys and values are computed here, once for the whole request.
     pub fn start_sequence(&self, latents: &Tensor) -> Result<SequenceState> {
         let latents = if latents.rank() == 2 { latents.unsqueeze(0)? } else { latents.clone() };
         Ok(SequenceState {
@@ -539,5 +538,30 @@ mod tests {
             assert!(has_grad("decoder.").into_iter().all(|g| g), "{mode:?}");
             assert!(has_grad("head.").into_iter().all(|g| g), "{mode:?}");
         }
+    }
+
+    #[test]
+    fn a_training_models_steps_follow_its_weights_as_they_change() {
+        let cfg = FaceConfig::micro();
+        let dev = Device::Cpu;
+        let (varmap, _) = random_model(&cfg);
+        let training =
+            FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, &dev)).unwrap();
+        let latents = random_latents(&cfg, 1, 7);
+        let first_step = |model: &FaceModel| {
+            let mut state = model.start_sequence(&latents).unwrap();
+            model.step(&mut [&mut state]).unwrap()
+        };
+        let before = first_step(&training);
+        // As an optimizer step does: a cross-attention weight changes in place.
+        {
+            let vars = varmap.data().lock().unwrap();
+            let q = &vars["decoder.layers.0.cross_attn.q.weight"];
+            q.set(&(q.as_tensor() * 2.0).unwrap()).unwrap();
+        }
+        let after = first_step(&training);
+        let changed = crate::model::checkpoint::inference_model(&cfg, &varmap, &dev).unwrap();
+        assert!(max_abs_diff(&after, &before) > 1e-3, "the step did not see the new weight");
+        assert!(max_abs_diff(&after, &first_step(&changed)) < 1e-5);
     }
 }

@@ -9,7 +9,7 @@
 //!
 //! ```text
 //! latents = model.encode(points, normals, fps_indices)      // (B, K, latent_dim), batched
-//! gen     = Generation::new(&model, &latents.get(i), opts)   // cross-attn K/V computed here, once
+//! gen     = Generation::new(&model, &latents.get(i), opts)   // keeps the latents, a fresh cache
 //! loop { events = step_generations(&model, &mut running) }   // one decoder step for all rows,
 //!                                                            // then 9 head passes with per-row
 //!                                                            // sampling or face beams, and

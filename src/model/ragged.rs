@@ -9,7 +9,7 @@ use super::Result;
 use super::attention::attend;
 
 /// q: (B, H, 1, hd); `kv[r]`: row r's keys and values, (1, H, L_r, hd) each (views into a
-/// cache are fine). Returns (B, H, 1, hd).
+/// cache, or one set broadcast to every head, are fine). Returns (B, H, 1, hd).
 pub fn attend_rows(q: &Tensor, kv: &[(Tensor, Tensor)]) -> Result<Tensor> {
     if let Some(out) = attend_rows_cpu(q, kv)? {
         return Ok(out);
@@ -17,7 +17,8 @@ pub fn attend_rows(q: &Tensor, kv: &[(Tensor, Tensor)]) -> Result<Tensor> {
     let outs = kv
         .iter()
         .enumerate()
-        .map(|(r, (k, v))| attend(&q.narrow(0, r, 1)?, k, v, None))
+        // Contiguous: CUDA's matmul takes no broadcast views (latents shared by every head).
+        .map(|(r, (k, v))| attend(&q.narrow(0, r, 1)?, &k.contiguous()?, &v.contiguous()?, None))
         .collect::<Result<Vec<_>>>()?;
     Ok(Tensor::cat(&outs, 0)?)
 }
@@ -143,6 +144,25 @@ mod tests {
         let fast = attend_rows_cpu(&q, &kv).unwrap().expect("cpu path");
         for (r, (k, v)) in kv.iter().enumerate() {
             let slow = attend(&q.narrow(0, r, 1).unwrap(), k, v, None).unwrap();
+            assert!(max_abs_diff(&fast.narrow(0, r, 1).unwrap(), &slow) < 1e-5);
+        }
+    }
+
+    #[test]
+    fn matches_the_op_by_op_path_on_keys_shared_by_every_head() {
+        let dev = Device::Cpu;
+        let q = Tensor::randn(0f32, 1.0, (2, 3, 1, 4), &dev).unwrap();
+        let kv: Vec<(Tensor, Tensor)> = (0..2)
+            .map(|_| {
+                let shared = Tensor::randn(0f32, 1.0, (1, 1, 5, 4), &dev).unwrap();
+                let view = shared.broadcast_as((1, 3, 5, 4)).unwrap();
+                (view.clone(), view)
+            })
+            .collect();
+        let fast = attend_rows_cpu(&q, &kv).unwrap().expect("cpu path");
+        for (r, (k, v)) in kv.iter().enumerate() {
+            let (k, v) = (k.contiguous().unwrap(), v.contiguous().unwrap());
+            let slow = attend(&q.narrow(0, r, 1).unwrap(), &k, &v, None).unwrap();
             assert!(max_abs_diff(&fast.narrow(0, r, 1).unwrap(), &slow) < 1e-5);
         }
     }
