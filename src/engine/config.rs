@@ -10,7 +10,7 @@ pub struct EngineConfig {
     /// Sequences decoded together, one face each per iteration. The default, 64, lets 16
     /// whole-mesh requests (4 candidates each) decode at once: on 2 cores their rows stepped
     /// together gave 9-12% more faces/s than 16 rows did (`docs/decisions.md`, "Serving"), for
-    /// at most 64 decoder caches (about 5 MiB each at the shipped model's 400 faces).
+    /// at most 64 decoder caches (about 4 MiB each at the shipped model's 400 faces).
     pub max_running: usize,
     /// Requests waiting to start; one more is refused (HTTP 429).
     pub max_queue: usize,
