@@ -1,8 +1,11 @@
 //! The `meshstream` binary end to end: stats, convert, sample and eval on real files.
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Output};
 
+use common::weights::redraw_from_seed;
 use meshstream::mesh::primitives::{cuboid, uv_sphere};
 use meshstream::mesh::{Format, ReadLimits, read_mesh_file, write_mesh_file};
 
@@ -169,36 +172,6 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
     let no_gt = meshstream(&["eval", "--pred", path(&pred), "--gt", path(&missing)]);
     assert!(!no_gt.status.success());
     assert!(String::from_utf8_lossy(&no_gt.stderr).contains("does not exist"), "{no_gt:?}");
-}
-
-/// Every variable of `varmap` drawn again from a generator seeded with `seed`: a matrix from a
-/// normal distribution of variance 1 / its input width, a vector kept where it is constant (a
-/// norm's weight, a zero bias) and zero otherwise. Why: candle draws a `VarMap`'s initial
-/// values from an unseeded generator, so a test's random network, and whether it ends a mesh
-/// at once, would change from run to run (one in CI did end every candidate at once).
-fn redraw_from_seed(varmap: &candle_nn::VarMap, seed: u64) {
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, Normal};
-
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let vars = varmap.data().lock().unwrap();
-    let mut names: Vec<&String> = vars.keys().collect();
-    names.sort();
-    for name in names {
-        let var = &vars[name];
-        let t = var.as_tensor();
-        let values = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        let drawn: Vec<f32> = match t.dims() {
-            [.., width] if t.rank() >= 2 => {
-                let normal = Normal::new(0.0, 1.0 / (*width as f32).sqrt()).unwrap();
-                (0..values.len()).map(|_| normal.sample(&mut rng)).collect()
-            }
-            _ if values.iter().all(|&v| v == values[0]) => continue,
-            _ => vec![0.0; values.len()],
-        };
-        let shape = t.shape().clone();
-        var.set(&candle_core::Tensor::from_vec(drawn, shape, t.device()).unwrap()).unwrap();
-    }
 }
 
 #[test]

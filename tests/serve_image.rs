@@ -15,7 +15,7 @@ use meshstream::server::proto::{GenerateOptions, GenerateRequest, reconstruct_re
 use serde_json::Value;
 use tonic::Code;
 
-/// A `tiny` image model with random weights, saved like a trained one.
+/// A `tiny` image model with random weights (the same on every run), saved like a trained one.
 fn random_image_model(dir: &Path) {
     let cfg = DitConfig::tiny();
     let varmap = candle_nn::VarMap::new();
@@ -25,6 +25,7 @@ fn random_image_model(dir: &Path) {
         &candle_core::Device::Cpu,
     );
     DiffusionModel::new(&cfg, vb, None).unwrap();
+    common::weights::redraw_from_seed(&varmap, 0);
     checkpoint::save(dir, &cfg, &varmap).unwrap();
 }
 

@@ -1,6 +1,9 @@
-//! A real `meshstream serve` process on ephemeral ports, for the interface tests.
+//! A real `meshstream serve` process on ephemeral ports, for the interface tests; random
+//! weights drawn from a seed ([`weights`]).
 
 #![allow(dead_code)] // each test binary uses part of it
+
+pub mod weights;
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
