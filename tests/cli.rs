@@ -1,11 +1,8 @@
 //! The `meshstream` binary end to end: stats, convert, sample and eval on real files.
 
-mod common;
-
 use std::path::Path;
 use std::process::{Command, Output};
 
-use common::weights::redraw_from_seed;
 use meshstream::mesh::primitives::{cuboid, uv_sphere};
 use meshstream::mesh::{Format, ReadLimits, read_mesh_file, write_mesh_file};
 
@@ -176,9 +173,9 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
 
 #[test]
 fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
-    use candle_core::{DType, Device};
-    use candle_nn::{VarBuilder, VarMap};
-    use meshstream::model::{FaceConfig, FaceModel, checkpoint};
+    use candle_core::Device;
+    use candle_nn::VarMap;
+    use meshstream::model::{FaceConfig, FaceModel, checkpoint, seeded_var_builder};
 
     let dir = tempfile::tempdir().unwrap();
     // Random weights: the faces are arbitrary, but the path points -> latents -> faces -> mesh
@@ -186,8 +183,7 @@ fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
     let mut cfg = FaceConfig::tiny();
     cfg.max_faces = 30;
     let varmap = VarMap::new();
-    FaceModel::new(&cfg, VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu)).unwrap();
-    redraw_from_seed(&varmap, 0);
+    FaceModel::new(&cfg, seeded_var_builder(&varmap, 0, &Device::Cpu)).unwrap();
     let model = dir.path().join("model");
     checkpoint::save(&model, &cfg, &varmap).unwrap();
 

@@ -19,13 +19,8 @@ use tonic::Code;
 fn random_image_model(dir: &Path) {
     let cfg = DitConfig::tiny();
     let varmap = candle_nn::VarMap::new();
-    let vb = candle_nn::VarBuilder::from_varmap(
-        &varmap,
-        candle_core::DType::F32,
-        &candle_core::Device::Cpu,
-    );
+    let vb = meshstream::model::seeded_var_builder(&varmap, 0, &candle_core::Device::Cpu);
     DiffusionModel::new(&cfg, vb, None).unwrap();
-    common::weights::redraw_from_seed(&varmap, 0);
     checkpoint::save(dir, &cfg, &varmap).unwrap();
 }
 

@@ -59,6 +59,7 @@ mod input;
 pub mod quantize;
 mod ragged;
 mod sampling;
+mod seeded_init;
 #[cfg(test)]
 pub(crate) mod testing;
 
@@ -78,6 +79,7 @@ pub use generate::{
 pub use input::PointCloudInput;
 pub use quantize::{Quantize, QuantizeReport};
 pub use sampling::{Sampler, SamplingParams};
+pub use seeded_init::seeded_var_builder;
 
 /// A face: (z0 y0 x0 z1 y1 x1 z2 y2 x2), each coordinate in 0..Q.
 pub use crate::tokenize::FaceToken;

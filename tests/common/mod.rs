@@ -1,9 +1,6 @@
-//! A real `meshstream serve` process on ephemeral ports, for the interface tests; random
-//! weights drawn from a seed ([`weights`]).
+//! A real `meshstream serve` process on ephemeral ports, for the interface tests.
 
 #![allow(dead_code)] // each test binary uses part of it
-
-pub mod weights;
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
