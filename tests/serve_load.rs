@@ -1,6 +1,6 @@
 //! `serve` under sustained and excessive load and against clients that are slow on purpose:
 //! `bench soak` in CI size, overload against a short queue, a stalled stream reader, headers
-//! and bodies sent too slowly.
+//! and bodies sent too slowly, and connections that send nothing when the server stops.
 
 mod common;
 
@@ -210,6 +210,24 @@ async fn headers_sent_too_slowly_or_not_at_all_are_cut_off() {
     // Clients that send at a normal pace are served as before.
     let r = reqwest::Client::new().get(server.url("/healthz")).send().await.unwrap();
     assert_eq!(r.status(), 200);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_does_not_wait_for_connections_that_send_nothing() {
+    // The header read timeout (30 s by default) is far beyond the wait allowed below.
+    let mut server = Server::start(&["--shutdown-grace", "60"]);
+    let addr = server.http.trim_start_matches("http://").to_string();
+    // One connection that has said nothing yet (as an HTTP client's spare one), one idle
+    // between requests.
+    let _silent = TcpStream::connect(&addr).await.unwrap();
+    let mut idle = TcpStream::connect(&addr).await.unwrap();
+    idle.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    let mut buf = [0u8; 1024];
+    assert!(idle.read(&mut buf).await.unwrap() > 0);
+    let t0 = Instant::now();
+    server.terminate();
+    assert_eq!(server.wait_exit(Duration::from_secs(20)), Some(0));
+    assert!(t0.elapsed() < Duration::from_secs(10), "exited after {:?}", t0.elapsed());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -60,11 +60,16 @@ pub async fn serve_http(
         let mut finish = finish_rx.clone();
         tokio::spawn(async move {
             // hyper reads the first bytes to tell HTTP/1 from HTTP/2 before its header timer
-            // starts: a client that connects and sends nothing is closed here.
+            // starts: a client that connects and sends nothing is closed here, and at once
+            // when the server is closing (it is as idle as a connection can be).
             let mut first = [0u8; 1];
-            match tokio::time::timeout(timeouts.header, stream.peek(&mut first)).await {
-                Ok(Ok(n)) if n > 0 => {}
-                _ => return,
+            tokio::select! {
+                peeked = tokio::time::timeout(timeouts.header, stream.peek(&mut first)) => {
+                    if !matches!(peeked, Ok(Ok(n)) if n > 0) {
+                        return;
+                    }
+                }
+                _ = finish.changed() => return,
             }
             let connection = builder.serve_connection_with_upgrades(TokioIo::new(stream), service);
             tokio::pin!(connection);
