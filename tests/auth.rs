@@ -96,9 +96,11 @@ async fn keys_guard_http_and_grpc_alike_and_never_reach_the_log() {
         assert_eq!(get(path, None).await.unwrap().status(), 401, "{path}");
     }
 
-    // A request with a body: refused before it is read, served with a key.
+    // A request with a body: refused before it is read, and the connection closed (saying
+    // so, so that the client does not send its next request into it); served with a key.
     let body = points_json(&shape(), json!({"max_faces": 8, "candidates": 1, "fit_rounds": 0}));
     let r = http.post(server.url("/reconstruct")).json(&body).send().await.unwrap();
+    assert_eq!(r.headers().get("connection").map(|v| v.to_str().unwrap()), Some("close"));
     assert_eq!(answer(r).await, *first);
     let r = http
         .post(server.url("/reconstruct"))

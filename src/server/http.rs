@@ -26,6 +26,7 @@ use super::error::{ApiError, ErrorBody};
 use super::events::{DoneEvent, FaceEvent, Line, ProgressEvent};
 use super::image_input::{GenerateOptions, ImageDefaults, read_upload};
 use super::input::{InputLimits, ParsedRequest, PointsBody, ReconstructOptions, parse_body};
+use super::unread_body::close_if_body_unread;
 use super::{WholeMeshDefaults, no_image_model, prepare};
 
 #[derive(Clone)]
@@ -89,7 +90,8 @@ struct GenerateForm {
 }
 
 /// The API's routes, and the viewer page's when `ui` is set; `auth` refuses requests without
-/// a key (inside the request-id and trace layers, so that refusals carry an id and are traced).
+/// a key (inside the request-id and trace layers, so that refusals carry an id and are traced);
+/// an answer that leaves a request's body unread closes its connection (`unread_body`).
 pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
     let page = if ui { super::ui::routes() } else { Router::new() };
     Router::new()
@@ -110,6 +112,7 @@ pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
             tracing::info_span!("http", method = %req.method(), uri = %req.uri(), request_id = id)
         }))
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+        .layer(axum::middleware::from_fn(close_if_body_unread))
 }
 
 /// Reconstructs a mesh from points (JSON) or a point cloud or mesh file (raw body).

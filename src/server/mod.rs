@@ -9,6 +9,7 @@ mod http;
 mod image_input;
 mod input;
 mod ui;
+mod unread_body;
 
 /// The gRPC API's messages, client and server (`proto/meshstream/v1/meshstream.proto`).
 pub mod proto {
