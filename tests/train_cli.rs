@@ -68,12 +68,32 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     let tmp = tempfile::tempdir().unwrap();
     let data = data_slice(tmp.path(), &SLICE);
 
-    // candle cannot seed its CPU initializer, so both runs start from one exported set of
-    // random weights (a run of 0 steps, exported at full precision).
+    // A run of 0 steps, exported at full precision: the random weights the runs below start
+    // from.
     let init_run = tmp.path().join("init-run");
     run(&init_run, data.as_deref(), 16, 0, Start::Fresh);
     let init = tmp.path().join("init");
     export(&init_run, &init, "f32");
+    let weights = |dir: &Path| {
+        meshstream::model::checkpoint::read_model_weights(dir, &candle_core::Device::Cpu)
+            .unwrap()
+            .tensors
+    };
+    let same = |a: &Path, b: &Path| {
+        let (a, b) = (weights(a), weights(b));
+        a.len() == b.len()
+            && a.iter().all(|(name, t)| {
+                let diff = (t - &b[name]).unwrap().abs().unwrap();
+                diff.max_all().unwrap().to_scalar::<f32>().unwrap() == 0.0
+            })
+    };
+    // The initial weights are drawn from the run's seed: the same seed draws them again.
+    let again = tmp.path().join("init-run-again");
+    run(&again, data.as_deref(), 16, 0, Start::Fresh);
+    assert!(same(&init_run.join("checkpoint"), &again.join("checkpoint")));
+    let other_seed = tmp.path().join("init-run-seed-1");
+    run_with(&other_seed, data.as_deref(), 16, 0, Start::Fresh, &["--seed", "1"]);
+    assert!(!same(&init_run.join("checkpoint"), &other_seed.join("checkpoint")));
 
     // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
     // (It also turns every sample by a quarter turn, which its train.json records.)
@@ -98,11 +118,6 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_eq!(config["batch"]["sample"]["point_oversampling"], 4);
     assert_eq!(config["model"]["point_oversampling"], 4);
     // The f32 export passes the default shard size: `--init` read it from shards.
-    let weights = |dir: &Path| {
-        meshstream::model::checkpoint::read_model_weights(dir, &candle_core::Device::Cpu)
-            .unwrap()
-            .tensors
-    };
     let (before, after) = (weights(&init), weights(&frozen.join("checkpoint")));
     let unchanged = |name: &String| {
         let diff = (&before[name] - &after[name]).unwrap().abs().unwrap();

@@ -60,13 +60,18 @@ fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
     let tmp = tempfile::tempdir().unwrap();
     let data = data_slice(tmp.path(), &SLICE);
 
-    // candle cannot seed its CPU initializer, so both runs start from one exported set of
-    // random weights (a run of 0 steps, exported at full precision).
+    // Both runs start from one exported set of random weights (a run of 0 steps, exported at
+    // full precision).
     let init_run = tmp.path().join("init-run");
     let banner = run(&init_run, data.as_deref(), 0, Start::Fresh);
     assert!(banner.contains("latent cache:"), "{banner}");
     let init = tmp.path().join("init");
     export(&init_run, &init, "f32");
+    // They are drawn from the run's seed: a run started again draws the same.
+    let again = tmp.path().join("init-run-again");
+    run(&again, data.as_deref(), 0, Start::Fresh);
+    let weights = |run: &Path| std::fs::read(run.join("checkpoint/model.safetensors")).unwrap();
+    assert!(weights(&init_run) == weights(&again), "the same seed drew other weights");
 
     let straight = tmp.path().join("straight");
     run(&straight, data.as_deref(), 8, Start::Init(&init));

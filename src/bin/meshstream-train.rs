@@ -251,6 +251,7 @@ struct AeArgs {
     eval_procedural: usize,
     #[arg(long, default_value_t = 50_000)]
     eval_samples: usize,
+    /// Seed of the initial weights and of the batches: the same seed draws the same.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// cpu or cuda:N (with --features cuda).
@@ -410,6 +411,8 @@ struct DitArgs {
     eval_max_faces: Option<usize>,
     #[arg(long, default_value_t = 20_000)]
     eval_samples: usize,
+    /// Seed of the initial weights, the batches and the flow-matching noise: the same seed
+    /// draws the same.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// cpu or cuda:N (with --features cuda).

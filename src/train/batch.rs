@@ -111,6 +111,7 @@ pub struct BatchConfig {
     pub curriculum: Vec<CurriculumStage>,
     /// The model's face limit: the last stage never exceeds it.
     pub max_faces: usize,
+    /// Seed of the batches, and of the run's initial weights.
     pub seed: u64,
     /// Padding allowed inside one forward pass, as a fraction of its real positions: a batch
     /// is run as groups of similar lengths so short meshes do not pay for the longest one.

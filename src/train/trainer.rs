@@ -14,7 +14,7 @@ use crate::metrics::MetricOptions;
 use crate::model::checkpoint::detached_weights;
 use crate::model::{
     ENCODER_SCOPE, EncoderTraining, FaceConfig, FaceModel, TrainBatch,
-    checkpoint as model_checkpoint,
+    checkpoint as model_checkpoint, seeded_var_builder,
 };
 use crate::tokenize::Quantizer;
 
@@ -145,8 +145,9 @@ impl Trainer {
 
     fn build(cfg: TrainConfig, dir: RunDir, device: Device) -> Result<Self, TrainError> {
         let varmap = VarMap::new();
+        // Drawn from the run's seed: candle's own initializer cannot be seeded.
         let model =
-            FaceModel::new(&cfg.model, VarBuilder::from_varmap(&varmap, DType::F32, &device))?;
+            FaceModel::new(&cfg.model, seeded_var_builder(&varmap, cfg.batch.seed, &device))?;
         let mut optimizer = Optimizer::new(&varmap, cfg.optim, default_rule)?;
         if cfg.encoder_lr_scale != 1.0 {
             if cfg.encoder == EncoderTraining::Frozen

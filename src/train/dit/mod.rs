@@ -41,7 +41,8 @@ pub struct DitTrainConfig {
     pub muon: bool,
     #[serde(flatten)]
     pub plan: run_loop::Plan,
-    /// Seed of the batches and the flow-matching noise (the cache has its own in `cache`).
+    /// Seed of the initial weights, the batches and the flow-matching noise (the cache has its
+    /// own in `cache`).
     pub seed: u64,
 }
 

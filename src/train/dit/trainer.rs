@@ -8,13 +8,13 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use candle_core::{DType, Device, Tensor};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::{Device, Tensor};
+use candle_nn::VarMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
-use crate::model::{FaceModel, checkpoint as model_checkpoint};
+use crate::model::{FaceModel, checkpoint as model_checkpoint, seeded_var_builder};
 use crate::tokenize::Quantizer;
 
 use super::super::TrainError;
@@ -136,11 +136,9 @@ impl DitTrainer {
         cache: LatentCache,
     ) -> Result<Self, TrainError> {
         let varmap = VarMap::new();
-        let model = DiffusionModel::new(
-            &cfg.model,
-            VarBuilder::from_varmap(&varmap, DType::F32, &device),
-            None,
-        )?;
+        // Drawn from the run's seed: candle's own initializer cannot be seeded.
+        let model =
+            DiffusionModel::new(&cfg.model, seeded_var_builder(&varmap, cfg.seed, &device), None)?;
         let optimizer = if cfg.muon {
             Optimizer::new(&varmap, cfg.optim, default_rule)?
         } else {
