@@ -79,15 +79,14 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
             .unwrap()
             .tensors
     };
+    let largest_difference = |a: &candle_core::Tensor, b: &candle_core::Tensor| {
+        (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
+    };
     let same = |a: &Path, b: &Path| {
         let (a, b) = (weights(a), weights(b));
         a.len() == b.len()
-            && a.iter().all(|(name, t)| {
-                b.get(name).is_some_and(|u| {
-                    let diff = (t - u).unwrap().abs().unwrap();
-                    diff.max_all().unwrap().to_scalar::<f32>().unwrap() == 0.0
-                })
-            })
+            && a.iter()
+                .all(|(name, t)| b.get(name).is_some_and(|u| largest_difference(t, u) == 0.0))
     };
     // The initial weights are drawn from the run's seed: the same seed draws them again.
     let again = tmp.path().join("init-run-again");
@@ -121,10 +120,7 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_eq!(config["model"]["point_oversampling"], 4);
     // The f32 export passes the default shard size: `--init` read it from shards.
     let (before, after) = (weights(&init), weights(&frozen.join("checkpoint")));
-    let unchanged = |name: &String| {
-        let diff = (&before[name] - &after[name]).unwrap().abs().unwrap();
-        diff.max_all().unwrap().to_scalar::<f32>().unwrap() == 0.0
-    };
+    let unchanged = |name: &String| largest_difference(&before[name], &after[name]) == 0.0;
     assert!(before.keys().filter(|n| n.starts_with("encoder.")).all(unchanged));
     assert!(!before.keys().filter(|n| n.starts_with("decoder.layers.")).any(unchanged));
 
@@ -154,9 +150,6 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
         weights(&straight.join("checkpoint/average")),
         weights(&resumed.join("checkpoint/average")),
     );
-    let largest_difference = |a: &candle_core::Tensor, b: &candle_core::Tensor| {
-        (a - b).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap()
-    };
     let name = "decoder.layers.0.mlp.fc1.weight";
     let spread = largest_difference(&raw[name], &straight_average[name]);
     let off = largest_difference(&resumed_average[name], &straight_average[name]);
