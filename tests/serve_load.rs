@@ -59,6 +59,54 @@ fn a_ci_sized_soak_loses_nothing_and_gives_its_memory_back() {
 }
 
 #[test]
+fn bench_serve_rounds_take_turns_and_summarize_each_ratio() {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
+    let args = ["--concurrency", "1,2", "--interface", "whole", "--requests-per-client", "1"];
+    let out = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+        .args(["bench", "serve", "--model", model, "--max-faces", "20", "--rounds", "2"])
+        .args(args)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}\n{stdout}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<Vec<&str>> = stdout
+        .lines()
+        .map(|line| line.split('|').map(str::trim).filter(|c| !c.is_empty()).collect())
+        .collect();
+    // Round by round, each level in turn, one client first: its ratio is its own.
+    let levels: Vec<(&str, &str, &str)> = lines
+        .iter()
+        .filter(|cells| cells.first().is_some_and(|c| c.parse::<u32>().is_ok()))
+        .map(|r| (r[0], r[3], r[7]))
+        .collect();
+    assert_eq!(levels.len(), 4, "{stdout}");
+    for (i, &(round, clients, vs_one)) in levels.iter().enumerate() {
+        assert_eq!(round, ["1", "2"][i / 2], "{stdout}");
+        assert_eq!(clients, ["1", "2"][i % 2], "{stdout}");
+        if clients == "1" {
+            assert_eq!(vs_one, "1.00x", "{stdout}");
+        }
+    }
+    // Then the summary: the two-client level's ratio over both rounds, between its two values.
+    let summary = lines
+        .iter()
+        .find(|c| c.len() == 7 && c[0] == "whole" && c[2] == "2")
+        .unwrap_or_else(|| panic!("no summary row: {stdout}"));
+    let ratio = |c: &str| c.trim_end_matches('x').parse::<f64>().unwrap();
+    let seen: Vec<f64> = levels.iter().filter(|l| l.1 == "2").map(|l| ratio(l.2)).collect();
+    let (lowest, highest) = (seen[0].min(seen[1]), seen[0].max(seen[1]));
+    assert_eq!(summary[6], "2", "{stdout}");
+    assert!((ratio(summary[4]) - lowest).abs() < 0.006, "{stdout}");
+    assert!((ratio(summary[5]) - highest).abs() < 0.006, "{stdout}");
+    assert!((ratio(summary[3]) - (lowest + highest) / 2.0).abs() < 0.011, "{stdout}");
+}
+
+#[test]
 fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
     // As many clients as the server runs and queues (16 + 16; both set here, whatever the
     // defaults): nobody is refused.

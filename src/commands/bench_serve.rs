@@ -13,6 +13,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use meshstream::engine::{Engine, EngineConfig, Metrics, Stage};
 use meshstream::mesh::{Mesh, REFERENCE_POINTS, ReadLimits};
+use meshstream::metrics::median;
 use meshstream::model::{DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, Quantize, parse_device};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{Options, ReconstructRequest, reconstruct_response};
@@ -43,6 +44,11 @@ pub struct ServeBenchArgs {
     /// Requests each client sends, one after the other.
     #[arg(long, default_value_t = 4)]
     requests_per_client: usize,
+    /// Times every level is measured, the levels taking turns: a level's ratio against one
+    /// client is taken within its round, and with more than one round a second table gives
+    /// each ratio's median and range (a machine's speed drifts between runs).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    rounds: u32,
     /// Face budget of each request.
     #[arg(long, default_value_t = 300)]
     max_faces: u32,
@@ -110,6 +116,47 @@ impl Level {
     }
 }
 
+/// Each level's faces/s against one client's in the same round, over the rounds, in the order
+/// the levels were first measured.
+#[derive(Default)]
+struct Ratios(Vec<((Interface, String, usize), Vec<f64>)>);
+
+impl Ratios {
+    fn add(&mut self, level: (Interface, String, usize), ratio: f64) {
+        match self.0.iter_mut().find(|(l, _)| *l == level) {
+            Some((_, seen)) => seen.push(ratio),
+            None => self.0.push((level, vec![ratio])),
+        }
+    }
+
+    fn table(&self) -> comfy_table::Table {
+        let mut table = super::table();
+        table.set_header([
+            "interface",
+            "server",
+            "clients",
+            "vs 1 client: median",
+            "lowest",
+            "highest",
+            "rounds",
+        ]);
+        for ((interface, server, clients), seen) in &self.0 {
+            let lowest = seen.iter().copied().fold(f64::INFINITY, f64::min);
+            let highest = seen.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            table.add_row([
+                interface.to_string(),
+                server.clone(),
+                clients.to_string(),
+                median(seen.clone()).map_or("-".into(), |m| format!("{m:.2}x")),
+                format!("{lowest:.2}x"),
+                format!("{highest:.2}x"),
+                seen.len().to_string(),
+            ]);
+        }
+        table
+    }
+}
+
 /// The CPU time this process has used so far (user and system, all its threads: the server
 /// and, in a level, its clients), in seconds; `None` where it cannot be read.
 ///
@@ -174,6 +221,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         let cloud = test_cloud(4096);
         let mut table = super::table();
         table.set_header([
+            "round",
             "interface",
             "server",
             "clients",
@@ -188,7 +236,10 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             "faces a CPU s",
             "work s: prepare, encode, decode, end",
         ]);
-        for &interface in &args.interface {
+        let mut ratios = Ratios::default();
+        for (round, &interface) in
+            (1..=args.rounds).flat_map(|r| args.interface.iter().map(move |i| (r, i)))
+        {
             let servers: Vec<(String, SocketAddr)> = match interface {
                 Interface::Whole => std::iter::once(("this build".to_string(), http))
                     .chain(args.also_http.iter().map(|a| (a.to_string(), *a)))
@@ -208,7 +259,9 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
                     let throughput = level.faces_per_second();
                     let one = *single[i].get_or_insert(throughput);
                     let this = *this_build.get_or_insert(throughput);
+                    ratios.add((interface, name.clone(), clients), throughput / one);
                     let mut row = vec![
+                        round.to_string(),
                         interface.to_string(),
                         name.clone(),
                         clients.to_string(),
@@ -248,6 +301,9 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         let _ = stop.send(());
         server.await??;
         out(&table)?;
+        if args.rounds > 1 {
+            out(ratios.table())?;
+        }
         anyhow::Ok(())
     })
 }

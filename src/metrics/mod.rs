@@ -14,5 +14,5 @@ pub use distances::{Distances, MetricOptions, mesh_distances, point_set_distance
 pub use error::MetricsError;
 pub use faces::{DEFAULT_FACE_TOLERANCE, FaceMatch, FaceSummary, face_match, summarize_faces};
 pub use paired::{PairedDifference, paired_chamfer};
-pub use summary::{EvalRecord, EvalSummary, summarize};
+pub use summary::{EvalRecord, EvalSummary, median, summarize};
 pub use topology::{Topology, TopologySummary, summarize_topology, topology};

@@ -59,8 +59,8 @@ fn mean(xs: &[f64]) -> Option<f64> {
     (!xs.is_empty()).then(|| xs.iter().sum::<f64>() / xs.len() as f64)
 }
 
-/// The middle value, or the mean of the two middle values for an even count.
-fn median(mut xs: Vec<f64>) -> Option<f64> {
+/// The middle value, or the mean of the two middle values for an even count; `None` for none.
+pub fn median(mut xs: Vec<f64>) -> Option<f64> {
     xs.sort_by(f64::total_cmp);
     let mid = xs.len() / 2;
     match xs.len() {
