@@ -13,21 +13,28 @@ use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-/// `meshstream bench soak ARGS --json`: the report, after checking that it exited 0.
-fn soak(args: &[&str]) -> Value {
+/// `meshstream bench KIND --model (the shipped one) ARGS`: its standard output, after checking
+/// that it exited 0.
+fn bench(kind: &str, args: &[&str]) -> String {
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
     let out = Command::new(env!("CARGO_BIN_EXE_meshstream"))
-        .args(["bench", "soak", "--json", "--model", model])
+        .args(["bench", kind, "--model", model])
         .args(args)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(
         out.status.success(),
-        "{args:?}: {}\n{stdout}\n{}",
+        "{kind} {args:?}: {}\n{stdout}\n{}",
         out.status,
         String::from_utf8_lossy(&out.stderr)
     );
+    stdout
+}
+
+/// `meshstream bench soak ARGS --json`: the report.
+fn soak(args: &[&str]) -> Value {
+    let stdout = bench("soak", &[args, &["--json"]].concat());
     serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"))
 }
 
@@ -60,20 +67,8 @@ fn a_ci_sized_soak_loses_nothing_and_gives_its_memory_back() {
 
 #[test]
 fn bench_serve_rounds_take_turns_and_summarize_each_ratio() {
-    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default");
-    let args = ["--concurrency", "1,2", "--interface", "whole", "--requests-per-client", "1"];
-    let out = Command::new(env!("CARGO_BIN_EXE_meshstream"))
-        .args(["bench", "serve", "--model", model, "--max-faces", "20", "--rounds", "2"])
-        .args(args)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{}\n{stdout}\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let sweep = ["--concurrency", "1,2", "--interface", "whole", "--requests-per-client", "1"];
+    let stdout = bench("serve", &[&sweep[..], &["--max-faces", "20", "--rounds", "2"]].concat());
     let lines: Vec<Vec<&str>> = stdout
         .lines()
         .map(|line| line.split('|').map(str::trim).filter(|c| !c.is_empty()).collect())
