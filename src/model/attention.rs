@@ -138,7 +138,7 @@ impl Dense {
 
     /// An f32 inference layer of the weight (out, in), derived from others rather than read
     /// (its name says so).
-    fn derived(name: String, weight: &Tensor, bias: Option<Tensor>) -> Result<Self> {
+    pub(crate) fn derived(name: String, weight: &Tensor, bias: Option<Tensor>) -> Result<Self> {
         Ok(Self::Infer {
             name,
             weight: weight.contiguous()?,
@@ -268,6 +268,11 @@ impl Mlp {
 
     pub fn dense_mut(&mut self) -> Vec<&mut Dense> {
         vec![&mut self.fc1, &mut self.fc2]
+    }
+
+    /// The first and the second layer.
+    pub fn layers(&self) -> (&Dense, &Dense) {
+        (&self.fc1, &self.fc2)
     }
 }
 

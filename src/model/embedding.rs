@@ -31,6 +31,11 @@ impl CoordEmbedding {
         self.dim
     }
 
+    /// The 9 tables stacked, (9 * Q, dim): row `slot * Q + value`.
+    pub fn tables(&self) -> &Tensor {
+        self.table.embeddings()
+    }
+
     /// tokens (..., n) u32 holding the coordinates of slots `first_slot..first_slot + n`
     /// -> (..., n * dim), the per-slot embeddings concatenated.
     pub fn embed(&self, tokens: &Tensor, first_slot: usize) -> Result<Tensor> {

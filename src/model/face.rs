@@ -11,7 +11,7 @@ use super::config::{COORDS_PER_FACE, FaceConfig};
 use super::decoder::DecoderStack;
 use super::embedding::{CoordEmbedding, FacePooling};
 use super::encoder::{EncoderOutput, ShapeEncoder};
-use super::head::CausalHead;
+use super::head::{CausalHead, FoldedHead};
 use super::{FaceToken, ModelError, Result};
 
 /// One sequence being decoded: its decoder cache (self-attention keys/values per layer and the
@@ -228,6 +228,12 @@ impl FaceModel {
     /// plus end of mesh (the last class) for j = 0.
     pub fn head_logits(&self, j: usize, context: &Tensor) -> Result<Tensor> {
         self.head.logits(j, context)
+    }
+
+    /// The head folded with the coordinate embeddings, for decoding (see [`FoldedHead`]);
+    /// `None` for a model in training.
+    pub(crate) fn folded_head(&self) -> Result<Option<&FoldedHead>> {
+        self.head.folded(&self.coords)
     }
 
     /// Appends the chosen values of coordinate `j` (one per row) to a head context.

@@ -19,6 +19,7 @@ use candle_core::Tensor;
 
 use super::config::COORDS_PER_FACE;
 use super::constraints::allowed_values;
+use super::head::FoldedHead;
 use super::sampling::Sampler;
 use super::{FaceModel, FaceToken, Result};
 
@@ -61,10 +62,13 @@ pub(super) fn choose_faces(
     let mut partials: Vec<Partial> = (0..rows.len())
         .map(|row| Partial { row, coords: [0; COORDS_PER_FACE], log_prob: 0.0 })
         .collect();
-    let mut context = hidden;
+    let mut input = match model.folded_head()? {
+        Some(head) => HeadInput::Folded { head, on_states: head.on_states(&hidden)? },
+        None => HeadInput::Context(hidden),
+    };
     let mut allowed = Vec::with_capacity(q + 1);
     for j in 0..COORDS_PER_FACE {
-        let logits = model.head_logits(j, &context)?.to_vec2::<f32>()?;
+        let logits = input.logits(model, j, &partials)?;
         // Partials stay grouped by row, in row order.
         let mut next: Vec<(usize, Partial)> = Vec::with_capacity(partials.len());
         let mut start = 0;
@@ -87,17 +91,8 @@ pub(super) fn choose_faces(
         if next.is_empty() {
             return Ok(choices);
         }
-        if j + 1 < COORDS_PER_FACE {
-            let parents: Vec<u32> = next.iter().map(|(i, _)| *i as u32).collect();
-            if parents.len() != partials.len()
-                || parents.iter().enumerate().any(|(i, &p)| p as usize != i)
-            {
-                let n = parents.len();
-                context =
-                    context.index_select(&Tensor::from_vec(parents, n, context.device())?, 0)?;
-            }
-            let column: Vec<u16> = next.iter().map(|(_, p)| p.coords[j]).collect();
-            context = model.extend_context(&context, j, &column)?;
+        if let (HeadInput::Context(context), true) = (&mut input, j + 1 < COORDS_PER_FACE) {
+            *context = extended_context(model, context, j, partials.len(), &next)?;
         }
         partials = next.into_iter().map(|(_, p)| p).collect();
     }
@@ -106,6 +101,49 @@ pub(super) fn choose_faces(
         choices[p.row] = Choice::Face(p.coords);
     }
     Ok(choices)
+}
+
+/// What the head reads for the partial faces.
+enum HeadInput<'m> {
+    /// The head folded (an inference model): every row's part on its decoder state.
+    Folded { head: &'m FoldedHead, on_states: Vec<f32> },
+    /// Each partial face's context (a model in training): its decoder state and the
+    /// embeddings of its coordinates so far.
+    Context(Tensor),
+}
+
+impl HeadInput<'_> {
+    /// One row of sub-head `j`'s logits per partial face.
+    fn logits(&self, model: &FaceModel, j: usize, partials: &[Partial]) -> Result<Vec<Vec<f32>>> {
+        let logits = match self {
+            Self::Folded { head, on_states } => {
+                head.logits(j, on_states, partials.iter().map(|p| (p.row, &p.coords[..])))?
+            }
+            Self::Context(context) => model.head_logits(j, context)?,
+        };
+        Ok(logits.to_vec2::<f32>()?)
+    }
+}
+
+/// The contexts of the partial faces `next` (each with its parent among `parents` partial
+/// faces, whose contexts are `context`), extended by coordinate `j`.
+fn extended_context(
+    model: &FaceModel,
+    context: &Tensor,
+    j: usize,
+    parents: usize,
+    next: &[(usize, Partial)],
+) -> Result<Tensor> {
+    let order: Vec<u32> = next.iter().map(|(i, _)| *i as u32).collect();
+    let context =
+        if order.len() != parents || order.iter().enumerate().any(|(i, &p)| p as usize != i) {
+            let n = order.len();
+            context.index_select(&Tensor::from_vec(order, n, context.device())?, 0)?
+        } else {
+            context.clone()
+        };
+    let column: Vec<u16> = next.iter().map(|(_, p)| p.coords[j]).collect();
+    model.extend_context(&context, j, &column)
 }
 
 /// What every row's choice at coordinate `j` reads.
@@ -273,6 +311,29 @@ mod tests {
         let mut rows =
             [RowSearch { sampler: &mut sampler, earlier, constrained: true, eos_ok, beam }];
         choose_faces(model, hidden.clone(), &mut rows).unwrap()[0]
+    }
+
+    /// A model in training (its head read through contexts that grow a coordinate at a
+    /// time) and the same weights loaded for inference (its head folded) choose the same faces.
+    #[test]
+    fn a_training_and_an_inference_model_choose_the_same_faces() {
+        let cfg = FaceConfig::micro();
+        let (varmap, inference) = random_model(&cfg);
+        let vb = candle_nn::VarBuilder::from_varmap(&varmap, candle_core::DType::F32, &Device::Cpu);
+        let training = FaceModel::new(&cfg, vb).unwrap();
+        assert!(training.folded_head().unwrap().is_none());
+        let earlier = [[0, 0, 0, 0, 1, 0, 0, 1, 1]];
+        for seed in 0..8 {
+            let h = hidden(&inference, seed);
+            for beam in [1, 4] {
+                let (a, b) = (
+                    choose(&training, &h, &earlier, beam, false),
+                    choose(&inference, &h, &earlier, beam, false),
+                );
+                assert!(matches!(a, Choice::Face(_)), "seed {seed}, beam {beam}: {a:?}");
+                assert_eq!(a, b, "seed {seed}, beam {beam}");
+            }
+        }
     }
 
     proptest! {
