@@ -26,7 +26,8 @@
 //! - Positions: RoPE in the decoder's self-attention (no learned table to outgrow); the encoder
 //!   has no positions (a point set has no order). Learned positions were not tried.
 //! - The CausalMLP's sub-heads reuse the decoder's 9 per-slot coordinate embedding tables for
-//!   the coordinates already chosen; sub-head j is an MLP on [h ; e_0 .. e_{j-1}].
+//!   the coordinates already chosen; sub-head j is an MLP on [h ; e_0 .. e_{j-1}]. Decoding
+//!   folds their first layers with the tables (`head::FoldedHead`).
 //! - Pre-norm LayerNorm blocks, SiLU MLPs, no biases in attention projections.
 //! - Weight names (the checkpoint format): `encoder.{point_embed, query_block.*, layers.N.*,
 //!   norm, bottleneck}`, `decoder.{coord_embed, face_pooling.fc1/fc2, start, latent_up,
