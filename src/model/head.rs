@@ -54,9 +54,7 @@ impl CausalHead {
     }
 
     fn sub_head(&self, j: usize) -> Result<&Mlp> {
-        self.sub_heads.get(j).ok_or_else(|| {
-            ModelError::bad_input(format!("coordinate {j} out of 0..{COORDS_PER_FACE}"))
-        })
+        self.sub_heads.get(j).ok_or_else(|| no_coordinate(j))
     }
 
     /// The head folded with the coordinate embeddings `coords` for decoding; `None` while its
@@ -104,10 +102,9 @@ impl FoldedHead {
             let (weight, bias) = sub_head.layers().0.values()?;
             hidden = weight.dim(0)?;
             on_state.push(weight.narrow(1, 0, d)?);
-            biases.push(match bias {
-                Some(b) => b,
-                None => Tensor::zeros(hidden, DType::F32, weight.device())?,
-            });
+            biases.push(bias.ok_or_else(|| {
+                ModelError::bad_input(format!("sub-head {j}'s first layer has no bias"))
+            })?);
             // In f64, so that each table row rounds once.
             let weight = weight.to_dtype(DType::F64)?;
             for i in 0..j {
@@ -140,9 +137,7 @@ impl FoldedHead {
         partials: impl ExactSizeIterator<Item = (usize, &'a [u16])>,
     ) -> Result<Tensor> {
         let (h, q) = (self.hidden, self.quant_levels);
-        let second = self.second.get(j).ok_or_else(|| {
-            ModelError::bad_input(format!("coordinate {j} out of 0..{COORDS_PER_FACE}"))
-        })?;
+        let second = self.second.get(j).ok_or_else(|| no_coordinate(j))?;
         let n = partials.len();
         let mut first = Vec::with_capacity(n * h);
         for (row, coords) in partials {
@@ -171,6 +166,10 @@ impl FoldedHead {
         }
         second.forward(&Tensor::from_vec(first, (n, h), &self.device)?)
     }
+}
+
+fn no_coordinate(j: usize) -> ModelError {
+    ModelError::bad_input(format!("coordinate {j} out of 0..{COORDS_PER_FACE}"))
 }
 
 /// Where the table of sub-head j's coordinate i < j starts, in tables: those of sub-head 1,
