@@ -74,17 +74,20 @@ fn bench_serve_rounds_take_turns_and_summarize_each_ratio() {
         .map(|line| line.split('|').map(str::trim).filter(|c| !c.is_empty()).collect())
         .collect();
     // Round by round, each level in turn, one client first: its ratio is its own.
-    let levels: Vec<(&str, &str, &str)> = lines
+    let levels: Vec<(&str, &str, &str, &str)> = lines
         .iter()
         .filter(|cells| cells.first().is_some_and(|c| c.parse::<u32>().is_ok()))
-        .map(|r| (r[0], r[3], r[7]))
+        .map(|r| (r[0], r[3], r[7], r[13]))
         .collect();
     assert_eq!(levels.len(), 4, "{stdout}");
-    for (i, &(round, clients, vs_one)) in levels.iter().enumerate() {
+    for (i, &(round, clients, vs_one, rows_a_step)) in levels.iter().enumerate() {
         assert_eq!(round, ["1", "2"][i / 2], "{stdout}");
         assert_eq!(clients, ["1", "2"][i % 2], "{stdout}");
         if clients == "1" {
             assert_eq!(vs_one, "1.00x", "{stdout}");
+            // A whole mesh's 4 candidates step together, however soon some of them end.
+            let rows: f64 = rows_a_step.parse().unwrap_or_else(|e| panic!("{e}: {stdout}"));
+            assert!(rows > 1.0 && rows <= 4.0, "{stdout}");
         }
     }
     // Then the summary: the two-client level's ratio over both rounds, between its two values.

@@ -234,6 +234,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
             "p99",
             "answer p50",
             "faces a CPU s",
+            "rows a step",
             "work s: prepare, encode, decode, end",
         ]);
         let mut ratios = Ratios::default();
@@ -251,6 +252,7 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
                 let mut this_build = None;
                 for (i, (name, addr)) in servers.iter().enumerate() {
                     let work_before = WORK_STAGES.map(|s| metrics.work_seconds(s));
+                    let steps_before = metrics.decode_steps();
                     let cpu_before = process_cpu_seconds();
                     let level = match interface {
                         Interface::Whole => whole_level(*addr, &cloud, args, clients).await?,
@@ -283,6 +285,14 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
                     row.push(match cpu {
                         Some(seconds) if i == 0 && seconds > 0.0 => {
                             format!("{:.0}", level.faces() as f64 / seconds)
+                        }
+                        _ => "-".into(),
+                    });
+                    // How well decoding batched: sequences stepped together, on average.
+                    let (steps, rows) = metrics.decode_steps();
+                    row.push(match steps - steps_before.0 {
+                        steps if i == 0 && steps > 0 => {
+                            format!("{:.1}", (rows - steps_before.1) as f64 / steps as f64)
                         }
                         _ => "-".into(),
                     });

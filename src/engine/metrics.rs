@@ -1,6 +1,6 @@
 //! Prometheus metrics of the engine and of the interfaces in front of it, in one registry.
 
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use prometheus_client::encoding::text::encode;
@@ -52,7 +52,12 @@ pub struct Metrics {
     pub time_to_first_face: Histogram,
     pub time_between_faces: Histogram,
     pub request_duration: Histogram,
-    pub batch_size: Histogram,
+    /// Observed through [`Self::observe_step`].
+    batch_size: Histogram,
+    /// Decode steps and the sequences they stepped, for [`Self::decode_steps`] (the histogram
+    /// keeps its sum and count to itself).
+    steps: AtomicU64,
+    rows_stepped: AtomicU64,
     pub diffusion_steps: Counter,
     pub diffusion_batch_size: Histogram,
     rejections: ByReason,
@@ -72,6 +77,8 @@ impl Default for Metrics {
             time_between_faces: Histogram::new(exponential_buckets(0.0002, 2.0, 14)),
             request_duration: Histogram::new(exponential_buckets(0.01, 2.0, 14)),
             batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            steps: AtomicU64::new(0),
+            rows_stepped: AtomicU64::new(0),
             diffusion_steps: Counter::default(),
             diffusion_batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
             rejections: ByReason::default(),
@@ -173,6 +180,18 @@ impl Metrics {
         out
     }
 
+    /// Counts a decode step of `rows` sequences.
+    pub fn observe_step(&self, rows: usize) {
+        self.batch_size.observe(rows as f64);
+        self.steps.fetch_add(1, Ordering::Relaxed);
+        self.rows_stepped.fetch_add(rows as u64, Ordering::Relaxed);
+    }
+
+    /// Decode steps so far and the sequences they stepped in all.
+    pub fn decode_steps(&self) -> (u64, u64) {
+        (self.steps.load(Ordering::Relaxed), self.rows_stepped.load(Ordering::Relaxed))
+    }
+
     /// Seconds of work counted for `stage` so far.
     pub fn work_seconds(&self, stage: Stage) -> f64 {
         self.work.get_or_create(&vec![("stage", stage.name())]).get()
@@ -195,7 +214,9 @@ mod tests {
     fn metrics_render_in_the_text_format_with_labels() {
         let m = Metrics::default();
         m.reject("queue_full");
-        m.batch_size.observe(4.0);
+        m.observe_step(4);
+        m.observe_step(3);
+        assert_eq!(m.decode_steps(), (2, 7));
         m.faces_generated.inc_by(7);
         m.add_work(Stage::Decode, Duration::from_millis(250));
         m.time(Stage::Decode, || ());
@@ -205,7 +226,7 @@ mod tests {
         assert!(text.contains("meshstream_work_seconds_total{stage=\"decode\"} 0.25"));
         assert!(text.contains("meshstream_requests_rejected_total{reason=\"queue_full\"} 1"));
         assert!(text.contains("meshstream_faces_generated_total 7"));
-        assert!(text.contains("meshstream_batch_size_count 1"));
+        assert!(text.contains("meshstream_batch_size_count 2"));
         assert!(text.ends_with("# EOF\n"));
     }
 }

@@ -401,7 +401,7 @@ impl Scheduler {
             }
             return;
         }
-        metrics.batch_size.observe(rows.len() as f64);
+        metrics.observe_step(rows.len());
         let part = self.pools.part_size(rows.len());
         let results = metrics
             .time(Stage::Decode, || self.pools.step(&self.model, &mut rows, |a| &mut a.generation));
