@@ -105,6 +105,28 @@ fn bench_serve_rounds_take_turns_and_summarize_each_ratio() {
 }
 
 #[test]
+fn bench_serve_sends_a_given_meshs_points_and_names_a_file_it_cannot_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = dir.path().join("tetrahedron.obj");
+    let faces = "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+    std::fs::write(&mesh, format!("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n{faces}")).unwrap();
+    let level = ["--concurrency", "1", "--interface", "whole", "--requests-per-client", "1"];
+    let input = mesh.to_str().unwrap();
+    let args = [&level[..], &["--max-faces", "20", "--input", input, "--points", "1500"]].concat();
+    let stdout = bench("serve", &args);
+    assert!(stdout.starts_with(&format!("input: {input}, 1500 points a request\n")), "{stdout}");
+    assert!(stdout.lines().any(|l| l.starts_with("| 1 ")), "no level measured: {stdout}");
+
+    let missing = dir.path().join("missing.ply");
+    let out = Command::new(env!("CARGO_BIN_EXE_meshstream"))
+        .args(["bench", "serve", "--input", missing.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("missing.ply"), "{stderr}");
+}
+
+#[test]
 fn overload_is_refused_at_once_and_admitted_requests_keep_their_pace() {
     // As many clients as the server runs and queues (16 + 16; both set here, whatever the
     // defaults): nobody is refused.

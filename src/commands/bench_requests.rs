@@ -1,9 +1,13 @@
 //! What the load generators (`bench serve`, `bench soak`) send: a fixed test shape as points,
 //! and how they summarize the times they measure.
 
+use std::path::Path;
 use std::time::Duration;
 
-use meshstream::mesh::{Mesh, primitives, sample_surface};
+use anyhow::Context;
+use meshstream::mesh::{
+    Mesh, ReadLimits, primitives, read_mesh_file, reference_points, sample_surface,
+};
 use meshstream::server::proto::{Options, PointCloud, ReconstructRequest, reconstruct_request};
 
 /// A fixed test shape (a box with a sphere on top), sampled to `points` points with normals.
@@ -11,6 +15,14 @@ pub fn test_cloud(points: usize) -> Mesh {
     let mut shape = primitives::cuboid([1.0, 0.6, 0.8]);
     shape.append(&primitives::uv_sphere(0.4, 8, 5).translated([0.0, 0.6, 0.0]));
     sample_surface(&shape, points, 0).unwrap_or_default()
+}
+
+/// The points of the mesh or point cloud file `input` (any format `reconstruct` reads): at
+/// most `points` of them, a mesh's sampled on its surface, a cloud's its own; with normals.
+pub fn file_cloud(input: &Path, points: usize) -> anyhow::Result<Mesh> {
+    let read = || read_mesh_file(input, &ReadLimits::default());
+    let mesh = read().with_context(|| format!("reading {}", input.display()))?;
+    reference_points(&mesh, points, 0).with_context(|| format!("points of {}", input.display()))
 }
 
 /// `cloud` as the gRPC API's points.

@@ -22,7 +22,7 @@ use meshstream::server::{
     WholeMeshDefaults, serve,
 };
 
-use super::bench_requests::{percentile_ms, points_request, test_cloud};
+use super::bench_requests::{file_cloud, percentile_ms, points_request, test_cloud};
 use super::out;
 
 #[derive(Args)]
@@ -49,6 +49,14 @@ pub struct ServeBenchArgs {
     /// each ratio's median and range (a machine's speed drifts between runs).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     rounds: u32,
+    /// A mesh or point cloud file whose points every request sends, instead of the built-in
+    /// test shape (a box with a sphere on top): how fast the server is depends on what it
+    /// decodes for the input.
+    #[arg(long)]
+    input: Option<PathBuf>,
+    /// Points in each request: the input's (a mesh's sampled on its surface), at most this many.
+    #[arg(long, default_value_t = 4096)]
+    points: usize,
     /// Face budget of each request.
     #[arg(long, default_value_t = 300)]
     max_faces: u32,
@@ -178,6 +186,11 @@ fn process_cpu_seconds() -> Option<f64> {
 }
 
 pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
+    let (cloud, source) = match &args.input {
+        Some(input) => (file_cloud(input, args.points)?, input.display().to_string()),
+        None => (test_cloud(args.points), "the built-in box and sphere".into()),
+    };
+    out(format_args!("input: {source}, {} points a request", cloud.vertices.len()))?;
     let device = parse_device(&args.device)?;
     let (model, _) = super::load_face_model(&args.model, &device, args.quantize)?;
     // The shipped engine settings: a level past `max_running` queues, as a server's would,
@@ -218,7 +231,6 @@ pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
         let server = tokio::spawn(serve(engine, serve_config, listeners, async {
             let _ = stopped.await;
         }));
-        let cloud = test_cloud(4096);
         let mut table = super::table();
         table.set_header([
             "round",
