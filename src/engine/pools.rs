@@ -8,8 +8,13 @@ use crate::model::{FaceModel, Generation, ModelError, StepEvent, step_generation
 
 use super::EngineError;
 
-/// Rows below which a part of the batch is not worth a thread of its own.
-const MIN_ROWS_PER_THREAD: usize = 4;
+/// Rows below which a part of the batch is not worth a thread of its own. Why 2: a whole mesh
+/// alone on the server steps its 4 candidates as 2 parts of 2, on both cores. A step of few
+/// rows mostly reads the weights, so each part costs about what the whole did: a 300-face
+/// whole mesh answered in 0.84-0.92 s against 1.06-1.09 s with parts of at least 4, for 1.4x
+/// the CPU, and 16 clients (parts of 10 rows and more) stayed within noise
+/// (`docs/decisions.md`, "Serving").
+const MIN_ROWS_PER_THREAD: usize = 2;
 
 pub struct DecodePools {
     /// One thread per core (or `decode_threads`): parts of the batch in parallel, and
@@ -81,7 +86,10 @@ mod tests {
     #[test]
     fn a_batch_steps_in_parts_as_its_rows_would_alone() {
         let pools = DecodePools::new(2).unwrap();
-        assert_eq!([1, 4, 8, 9, 64].map(|rows| pools.part_size(rows)), [4, 4, 4, 5, 32]);
+        assert_eq!([1, 3, 4, 8, 9, 64].map(|rows| pools.part_size(rows)), [2, 2, 2, 4, 5, 32]);
+        // Two rows make one part, on the single thread; from three they split.
+        assert!(std::ptr::eq(pools.pool_for(2), &pools.single));
+        assert!(std::ptr::eq(pools.pool_for(3), &pools.wide));
         let cfg = FaceConfig::micro();
         let (_, model) = random_model(&cfg);
         let options = GenerateOptions { max_faces: 6, ..GenerateOptions::default() };
