@@ -1,5 +1,6 @@
-//! What the load generators (`bench serve`, `bench soak`) send: a fixed test shape as points,
-//! and how they summarize the times they measure.
+//! What the load generators (`bench serve`, `bench soak`) send: a fixed test shape as points
+//! (or a given file's, for `bench serve --input`), and how they summarize the times they
+//! measure.
 
 use std::path::Path;
 use std::time::Duration;
