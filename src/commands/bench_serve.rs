@@ -55,8 +55,8 @@ pub struct ServeBenchArgs {
     #[arg(long)]
     input: Option<PathBuf>,
     /// Points in each request: the input's (a mesh's sampled on its surface), at most this many.
-    #[arg(long, default_value_t = 4096)]
-    points: usize,
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..))]
+    points: u32,
     /// Face budget of each request.
     #[arg(long, default_value_t = 300)]
     max_faces: u32,
@@ -187,8 +187,8 @@ fn process_cpu_seconds() -> Option<f64> {
 
 pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
     let (cloud, source) = match &args.input {
-        Some(input) => (file_cloud(input, args.points)?, input.display().to_string()),
-        None => (test_cloud(args.points), "the built-in box and sphere".into()),
+        Some(input) => (file_cloud(input, args.points as usize)?, input.display().to_string()),
+        None => (test_cloud(args.points as usize), "the built-in box and sphere".into()),
     };
     out(format_args!("input: {source}, {} points a request", cloud.vertices.len()))?;
     let device = parse_device(&args.device)?;
