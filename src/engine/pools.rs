@@ -10,10 +10,10 @@ use super::EngineError;
 
 /// Rows below which a part of the batch is not worth a thread of its own. Why 2: a whole mesh
 /// alone on the server steps its 4 candidates as 2 parts of 2, on both cores. A step of few
-/// rows mostly reads the weights, so each part costs about what the whole did: a 300-face
-/// whole mesh answered in 0.84-0.92 s against 1.06-1.09 s with parts of at least 4, for 1.4x
-/// the CPU, and 16 clients (parts of 10 rows and more) stayed within noise
-/// (`docs/decisions.md`, "Serving").
+/// rows mostly reads the weights, so each part costs about what the whole did: a whole mesh
+/// whose candidates all ran to the 300-face budget answered in 0.84-0.92 s against 1.06-1.09 s
+/// with parts of at least 4, for 1.4x the CPU, and 16 clients (parts of 10 rows and more)
+/// stayed within noise (`docs/decisions.md`, "Serving").
 const MIN_ROWS_PER_THREAD: usize = 2;
 
 pub struct DecodePools {
