@@ -21,8 +21,8 @@ pub fn test_cloud(points: usize) -> Mesh {
 /// The points of the mesh or point cloud file `input` (any format `reconstruct` reads): at
 /// most `points` of them, a mesh's sampled on its surface, a cloud's its own; with normals.
 pub fn file_cloud(input: &Path, points: usize) -> anyhow::Result<Mesh> {
-    let read = || read_mesh_file(input, &ReadLimits::default());
-    let mesh = read().with_context(|| format!("reading {}", input.display()))?;
+    let mesh = read_mesh_file(input, &ReadLimits::default())
+        .with_context(|| format!("reading {}", input.display()))?;
     reference_points(&mesh, points, 0).with_context(|| format!("points of {}", input.display()))
 }
 

@@ -186,9 +186,10 @@ fn process_cpu_seconds() -> Option<f64> {
 }
 
 pub fn run(args: &ServeBenchArgs) -> anyhow::Result<()> {
+    let points = args.points as usize;
     let (cloud, source) = match &args.input {
-        Some(input) => (file_cloud(input, args.points as usize)?, input.display().to_string()),
-        None => (test_cloud(args.points as usize), "the built-in box and sphere".into()),
+        Some(input) => (file_cloud(input, points)?, input.display().to_string()),
+        None => (test_cloud(points), "the built-in box and sphere".into()),
     };
     out(format_args!("input: {source}, {} points a request", cloud.vertices.len()))?;
     let device = parse_device(&args.device)?;
