@@ -17,7 +17,8 @@ use meshstream::mesh::primitives::uv_sphere;
 use meshstream::mesh::{farthest_point_sampling, sample_surface};
 use meshstream::model::{
     BaselineState, CoordinateBaseline, DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceConfig,
-    FaceModel, GenerateOptions, Generation, Quantize, SamplingParams, checkpoint, parse_device,
+    FaceModel, GenerateOptions, Generation, Quantize, SamplingParams, checkpoint, few_rows,
+    parse_device,
 };
 
 use super::out;
@@ -319,6 +320,32 @@ pub fn run(args: &DecodeBenchArgs) -> anyhow::Result<()> {
                 rates[0],
                 rates[1],
                 rates[1] / rates[0]
+            ),
+        ]);
+    }
+    // The few-rows kernel against candle's gemm, as a whole mesh's candidates decode.
+    let whole = Decoding { constrained: true, face_beam: DEFAULT_FACE_BEAM, ..greedy.clone() };
+    for &b in &args.batches {
+        let mut best = [f64::INFINITY; 2];
+        for _ in 0..args.rounds.max(1) {
+            for (kernel, slot) in [false, true].into_iter().zip(&mut best) {
+                few_rows::set_enabled(kernel);
+                let timed = decode_face(&pools, &model, &latents, b, args.faces, &whole);
+                few_rows::set_enabled(true);
+                let (secs, n, _) = timed?;
+                *slot = slot.min(secs / n as f64);
+            }
+        }
+        table.add_row(vec![
+            format!(
+                "FACE decode f32, batch {b}, masks on, face beam {DEFAULT_FACE_BEAM}: gemm vs \
+                 few-rows kernel"
+            ),
+            format!(
+                "{:.0} vs {:.0} faces/s aggregate ({:.2}x)",
+                1.0 / best[0],
+                1.0 / best[1],
+                best[0] / best[1]
             ),
         ]);
     }

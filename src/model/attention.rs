@@ -12,6 +12,7 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::kv_cache::KvCache;
 use candle_nn::{Init, Linear, VarBuilder};
 
+use super::few_rows;
 use super::ragged::attend_rows;
 use super::{ModelError, Result};
 
@@ -193,30 +194,30 @@ impl Dense {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims();
+        let (rows, input) = (x.elem_count() / dims[dims.len() - 1], dims[dims.len() - 1]);
+        // (rows, out) -> x's dimensions with the last one `out`.
+        let as_x = |y: Tensor| -> Result<Tensor> {
+            let mut out_dims = dims.to_vec();
+            out_dims[dims.len() - 1] = y.dim(1)?;
+            Ok(y.reshape(out_dims)?)
+        };
         match self {
             Self::Train(lin) => {
                 // As one 2-D matmul: candle's `Linear` broadcasts the weight over the batch,
                 // whose backward pass then materializes a weight gradient per batch entry.
-                let dims = x.dims();
-                let (rows, input) = (x.elem_count() / dims[dims.len() - 1], dims[dims.len() - 1]);
                 let y = x.reshape((rows, input))?.matmul(&lin.weight().t()?)?;
-                let y = match lin.bias() {
-                    Some(b) => y.broadcast_add(b)?,
-                    None => y,
-                };
-                let mut out_dims = dims.to_vec();
-                out_dims[dims.len() - 1] = y.dim(1)?;
-                Ok(y.reshape(out_dims)?)
+                as_x(add_bias(y, lin.bias())?)
             }
             Self::Infer { weight, weight_t, bias, .. } => {
-                let dims = x.dims();
-                let (rows, input) = (x.elem_count() / dims[dims.len() - 1], dims[dims.len() - 1]);
                 if rows <= FEW_ROWS && x.device().is_cpu() {
+                    let x = x.contiguous()?.reshape((rows, input))?;
+                    if let Some(y) = few_rows::linear(&x, weight, bias.as_ref())? {
+                        return as_x(y);
+                    }
                     // (W x^T)^T: the rows become the gemm's narrow side.
-                    let y = weight.matmul(&x.reshape((rows, input))?.t()?)?.t()?;
-                    let mut out_dims = dims.to_vec();
-                    out_dims[dims.len() - 1] = y.dim(1)?;
-                    return add_bias(y, bias.as_ref())?.reshape(out_dims).map_err(Into::into);
+                    let y = weight.matmul(&x.t()?)?.t()?;
+                    return as_x(add_bias(y, bias.as_ref())?);
                 }
                 // CUDA's matmul takes only row- or column-major operands; a context built by
                 // concatenating narrowed tensors is neither (the CPU takes any layout).
@@ -232,7 +233,8 @@ impl Dense {
     }
 }
 
-/// Up to this many rows, an f32 layer multiplies on the CPU as `(W x^T)^T`: the gemm behind
+/// Up to this many rows, an f32 layer multiplies on the CPU as `(W x^T)^T` (up to
+/// [`few_rows::MAX_ROWS`], in a kernel of its own, [`few_rows::linear`]): the gemm behind
 /// candle's matmul pads a few rows up to its kernel's 8 or 16, but takes its 4 columns as
 /// they are. Decoding one step on one thread (`bench decode`), that was 1.25x the faces/s
 /// at batch 4, 1.3x at batch 16 and 1.2x at 32, but 0.77x at 128 (and 0.5x encoding 1,024

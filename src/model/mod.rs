@@ -53,6 +53,7 @@ mod end_to_end;
 mod error;
 mod face;
 mod face_search;
+pub mod few_rows;
 mod fourier;
 mod generate;
 mod head;
