@@ -71,6 +71,9 @@ pub enum Dense {
         weight: Tensor,
         /// (in, out), contiguous.
         weight_t: Tensor,
+        /// (out, in) in f16, when every weight is an f16 value (the shipped model's are) and
+        /// the layer is on the CPU: what [`few_rows::linear`] reads, half the bytes.
+        weight_f16: Option<Tensor>,
         bias: Option<Tensor>,
     },
     Quantized {
@@ -92,12 +95,7 @@ impl Dense {
         if lin.weight().track_op() {
             return Ok(Self::Train(lin));
         }
-        Ok(Self::Infer {
-            name,
-            weight: lin.weight().contiguous()?,
-            weight_t: lin.weight().t()?.contiguous()?,
-            bias: lin.bias().cloned(),
-        })
+        Self::inference(name, lin.weight(), lin.bias().cloned())
     }
 
     /// The layer's scope in the checkpoint (its weight is `{name}.weight`).
@@ -137,13 +135,14 @@ impl Dense {
         matches!(self, Self::Train(_))
     }
 
-    /// An f32 inference layer of the weight (out, in), derived from others rather than read
-    /// (its name says so).
-    pub(crate) fn derived(name: String, weight: &Tensor, bias: Option<Tensor>) -> Result<Self> {
+    /// An f32 inference layer of the weight (out, in), read or derived from others (its name
+    /// says which).
+    pub(crate) fn inference(name: String, weight: &Tensor, bias: Option<Tensor>) -> Result<Self> {
         Ok(Self::Infer {
             name,
             weight: weight.contiguous()?,
             weight_t: weight.t()?.contiguous()?,
+            weight_f16: few_rows::exact_f16(weight)?,
             bias,
         })
     }
@@ -209,10 +208,11 @@ impl Dense {
                 let y = x.reshape((rows, input))?.matmul(&lin.weight().t()?)?;
                 as_x(add_bias(y, lin.bias())?)
             }
-            Self::Infer { weight, weight_t, bias, .. } => {
+            Self::Infer { weight, weight_t, weight_f16, bias, .. } => {
                 if rows <= FEW_ROWS && x.device().is_cpu() {
                     let x = x.contiguous()?.reshape((rows, input))?;
-                    if let Some(y) = few_rows::linear(&x, weight, bias.as_ref())? {
+                    let narrowest = weight_f16.as_ref().unwrap_or(weight);
+                    if let Some(y) = few_rows::linear(&x, narrowest, bias.as_ref())? {
                         return as_x(y);
                     }
                     // (W x^T)^T: the rows become the gemm's narrow side.
@@ -534,8 +534,8 @@ impl CrossAttention {
         let f32_of = |t: Tensor| t.to_dtype(DType::F32);
         let name = |from: &Dense| format!("{} folded onto the latents", from.name().unwrap_or("?"));
         Ok(LatentCrossAttention {
-            query: Dense::derived(name(&self.q), &f32_of(query)?, None)?,
-            out: Dense::derived(name(&self.out), &f32_of(out)?, bias.map(f32_of).transpose()?)?,
+            query: Dense::inference(name(&self.q), &f32_of(query)?, None)?,
+            out: Dense::inference(name(&self.out), &f32_of(out)?, bias.map(f32_of).transpose()?)?,
             heads,
         })
     }

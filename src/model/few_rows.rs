@@ -3,12 +3,15 @@
 //! Why: a decode step of a few sequences (one whole mesh's candidates, a few streams) multiplies
 //! each layer's weights by 1 to 4 rows, and reading the weights is nearly all of that work.
 //! candle's gemm reads them at memory speed for one row but took twice as long for 2 to 4
-//! rows; this kernel takes about as long for four rows as for one (`docs/decisions.md`, "A few
-//! rows multiply in a kernel of their own").
+//! rows; this kernel takes about as long for four rows as for one. It also reads weights
+//! stored as f16, half the bytes, where a layer's f32 weights are f16 values (the shipped
+//! model's are): the same products, sooner (`docs/decisions.md`, "A few rows multiply in a
+//! kernel of their own").
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use candle_core::{Layout, Storage, Tensor};
+use candle_core::{DType, Layout, Storage, Tensor};
+use half::f16;
 
 use super::Result;
 
@@ -23,53 +26,111 @@ pub fn set_enabled(enabled: bool) {
     ENABLED.store(enabled, Ordering::Relaxed);
 }
 
-/// x (rows, in) W^T + bias for W (out, in) and bias (out), f32 on the CPU, contiguous;
-/// `None` where the kernel does not apply (more than [`MAX_ROWS`] rows, other dtypes or
-/// layouts, `in` not a multiple of 8, a CPU without AVX2 and FMA), for the general path.
+/// x (rows, in) W^T + bias for W (out, in) and bias (out) on the CPU, contiguous, all f32 but
+/// W, which may be f16; `None` where the kernel does not apply (more than [`MAX_ROWS`] rows,
+/// other dtypes or layouts, `in` not a multiple of 8, a CPU without AVX2, FMA and, for f16,
+/// F16C), for the general path.
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Option<Tensor>> {
     let (rows, input) = x.dims2()?;
     let (out, weight_input) = weight.dims2()?;
-    let enabled = ENABLED.load(Ordering::Relaxed) && kernel::available();
-    if !(1..=MAX_ROWS).contains(&rows) || weight_input != input || !enabled {
+    if !(1..=MAX_ROWS).contains(&rows) || weight_input != input || !ENABLED.load(Ordering::Relaxed)
+    {
         return Ok(None);
     }
     let (x_storage, x_layout) = x.storage_and_layout();
     let (w_storage, w_layout) = weight.storage_and_layout();
     let b = bias.map(|b| b.storage_and_layout());
-    let (Some(xs), Some(ws)) = (f32_slice(&x_storage, x_layout), f32_slice(&w_storage, w_layout))
-    else {
-        return Ok(None);
-    };
+    let Some(xs) = slice::<f32>(&x_storage, x_layout) else { return Ok(None) };
     let bs = match &b {
-        Some((storage, layout)) => match f32_slice(storage, layout) {
+        Some((storage, layout)) => match slice::<f32>(storage, layout) {
             Some(bs) if bs.len() == out => Some(bs),
             _ => return Ok(None),
         },
         None => None,
     };
-    let Some(y) = kernel::multiply(xs, ws, bs, input) else { return Ok(None) };
+    let y =
+        match weight.dtype() {
+            DType::F32 => slice::<f32>(&w_storage, w_layout)
+                .and_then(|ws| kernel::multiply(xs, ws, bs, input)),
+            DType::F16 => slice::<f16>(&w_storage, w_layout)
+                .and_then(|ws| kernel::multiply(xs, ws, bs, input)),
+            _ => None,
+        };
+    let Some(y) = y else { return Ok(None) };
     Ok(Some(Tensor::from_vec(y, (rows, out), x.device())?))
 }
 
-/// The elements of a contiguous f32 tensor on the CPU.
-fn f32_slice<'a>(storage: &'a Storage, layout: &Layout) -> Option<&'a [f32]> {
+/// `weight` in f16 when every value of it is an f16 value (`None` otherwise, or off the CPU):
+/// the same layer for [`linear`] in half the bytes.
+pub fn exact_f16(weight: &Tensor) -> Result<Option<Tensor>> {
+    if !weight.device().is_cpu() || weight.dtype() != DType::F32 {
+        return Ok(None);
+    }
+    let values = weight.flatten_all()?.to_vec1::<f32>()?;
+    if values.iter().any(|&v| f16::from_f32(v).to_f32().to_bits() != v.to_bits()) {
+        return Ok(None);
+    }
+    Ok(Some(weight.to_dtype(DType::F16)?.contiguous()?))
+}
+
+/// The elements of a contiguous tensor of `T` on the CPU.
+fn slice<'a, T: candle_core::WithDType>(storage: &'a Storage, layout: &Layout) -> Option<&'a [T]> {
     let Storage::Cpu(cpu) = storage else { return None };
     let (start, end) = layout.contiguous_offsets()?;
-    cpu.as_slice::<f32>().ok()?.get(start..end)
+    cpu.as_slice::<T>().ok()?.get(start..end)
 }
 
 #[cfg(target_arch = "x86_64")]
 mod kernel {
     use std::arch::x86_64::*;
 
-    pub fn available() -> bool {
-        is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
+    use half::f16;
+
+    /// A weight's element type: f32 as it is, or f16 widened to f32 as it is loaded.
+    pub trait Weight: Copy {
+        /// Whether this CPU runs the kernel for it.
+        fn available() -> bool;
+
+        /// Eight weights from `at` as f32.
+        ///
+        /// # Safety
+        /// Eight elements readable from `at`; the CPU features of [`Weight::available`].
+        unsafe fn load8(at: *const Self) -> __m256;
+    }
+
+    impl Weight for f32 {
+        fn available() -> bool {
+            is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
+        }
+
+        #[inline(always)]
+        unsafe fn load8(at: *const f32) -> __m256 {
+            // SAFETY: as the caller guarantees.
+            unsafe { _mm256_loadu_ps(at) }
+        }
+    }
+
+    impl Weight for f16 {
+        fn available() -> bool {
+            f32::available() && is_x86_feature_detected!("f16c")
+        }
+
+        #[inline(always)]
+        unsafe fn load8(at: *const f16) -> __m256 {
+            // SAFETY: as the caller guarantees; 8 f16 are 128 bits.
+            unsafe { _mm256_cvtph_ps(_mm_loadu_si128(at.cast())) }
+        }
     }
 
     /// x (rows, input) W^T + bias, W (out, input), both row-major; `None` unless `input` is a
     /// positive multiple of 8 that divides both, at most [`super::MAX_ROWS`] rows, and this
-    /// CPU has AVX2 and FMA.
-    pub fn multiply(x: &[f32], w: &[f32], bias: Option<&[f32]>, input: usize) -> Option<Vec<f32>> {
+    /// CPU runs the kernel for `W`.
+    pub fn multiply<W: Weight>(
+        x: &[f32],
+        w: &[W],
+        bias: Option<&[f32]>,
+        input: usize,
+    ) -> Option<Vec<f32>> {
         if input == 0
             || !input.is_multiple_of(8)
             || !x.len().is_multiple_of(input)
@@ -81,19 +142,19 @@ mod kernel {
         if !(1..=super::MAX_ROWS).contains(&rows) || bias.is_some_and(|b| b.len() != out) {
             return None;
         }
-        if !available() {
+        if !W::available() {
             return None;
         }
         let mut y = vec![0f32; rows * out];
-        // SAFETY: the CPU has AVX2 and FMA (checked above), and the sizes are as `tile`
+        // SAFETY: the CPU runs the kernel for W (checked above), and the sizes are as `tile`
         // requires: x holds `rows` rows and w `out` rows of `input`, a multiple of 8, and y
         // holds rows x out.
         unsafe {
             match rows {
-                1 => tile::<1, 8>(x, w, &mut y, input, out),
-                2 => tile::<2, 4>(x, w, &mut y, input, out),
-                3 => tile::<3, 3>(x, w, &mut y, input, out),
-                _ => tile::<4, 2>(x, w, &mut y, input, out),
+                1 => tile::<W, 1, 8>(x, w, &mut y, input, out),
+                2 => tile::<W, 2, 4>(x, w, &mut y, input, out),
+                3 => tile::<W, 3, 3>(x, w, &mut y, input, out),
+                _ => tile::<W, 4, 2>(x, w, &mut y, input, out),
             }
         }
         if let Some(bias) = bias {
@@ -110,12 +171,12 @@ mod kernel {
     /// then the weight rows left over one at a time.
     ///
     /// # Safety
-    /// AVX2 and FMA; x.len() == M * input, w.len() == out * input, y.len() == M * out, and
-    /// `input` a multiple of 8.
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn tile<const M: usize, const O: usize>(
+    /// The CPU features of `W::available`; x.len() == M * input, w.len() == out * input,
+    /// y.len() == M * out, and `input` a multiple of 8.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    unsafe fn tile<W: Weight, const M: usize, const O: usize>(
         x: &[f32],
-        w: &[f32],
+        w: &[W],
         y: &mut [f32],
         input: usize,
         out: usize,
@@ -123,12 +184,12 @@ mod kernel {
         let mut o = 0;
         while o + O <= out {
             // SAFETY: o + O <= out, and the rest as this function requires.
-            unsafe { block::<M, O>(x, w, y, input, out, o) };
+            unsafe { block::<W, M, O>(x, w, y, input, out, o) };
             o += O;
         }
         for o in o..out {
             // SAFETY: o < out.
-            unsafe { block::<M, 1>(x, w, y, input, out, o) };
+            unsafe { block::<W, M, 1>(x, w, y, input, out, o) };
         }
     }
 
@@ -136,10 +197,10 @@ mod kernel {
     ///
     /// # Safety
     /// As [`tile`], and o + O <= out.
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn block<const M: usize, const O: usize>(
+    #[target_feature(enable = "avx2,fma,f16c")]
+    unsafe fn block<W: Weight, const M: usize, const O: usize>(
         x: &[f32],
-        w: &[f32],
+        w: &[W],
         y: &mut [f32],
         input: usize,
         out: usize,
@@ -155,7 +216,7 @@ mod kernel {
             }
             for k in 0..O {
                 // SAFETY: o + k < out and c + 8 <= input.
-                let wv = unsafe { _mm256_loadu_ps(wp.add((o + k) * input + c)) };
+                let wv = unsafe { W::load8(wp.add((o + k) * input + c)) };
                 for (row, &xv) in sums.iter_mut().zip(&xs) {
                     row[k] = _mm256_fmadd_ps(wv, xv, row[k]);
                 }
@@ -178,11 +239,17 @@ mod kernel {
 
 #[cfg(not(target_arch = "x86_64"))]
 mod kernel {
-    pub fn available() -> bool {
-        false
-    }
+    /// A weight's element type (the kernel is x86-64 only).
+    pub trait Weight {}
+    impl Weight for f32 {}
+    impl Weight for half::f16 {}
 
-    pub fn multiply(_: &[f32], _: &[f32], _: Option<&[f32]>, _: usize) -> Option<Vec<f32>> {
+    pub fn multiply<W: Weight>(
+        _: &[f32],
+        _: &[W],
+        _: Option<&[f32]>,
+        _: usize,
+    ) -> Option<Vec<f32>> {
         None
     }
 }
@@ -201,26 +268,56 @@ mod tests {
         }
     }
 
+    /// Whether this CPU runs the kernel (for f32 and f16 weights alike).
+    fn kernel_runs() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        return is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("fma")
+            && is_x86_feature_detected!("f16c");
+        #[cfg(not(target_arch = "x86_64"))]
+        false
+    }
+
     #[test]
     fn matches_the_general_matmul_for_every_row_count_and_leftover_outputs() {
-        if !kernel::available() {
-            eprintln!("skipped: this CPU has no AVX2 and FMA, and the kernel does not run");
+        if !kernel_runs() {
+            eprintln!("skipped: this CPU has no AVX2, FMA and F16C, and the kernel does not run");
             return;
         }
         let dev = Device::Cpu;
         for (out, input) in [(1, 8), (7, 24), (13, 256), (768, 256), (9, 1024)] {
+            // f16 values, so that the layer also multiplies from its f16 copy.
             let w = Tensor::randn(0f32, 1.0, (out, input), &dev).unwrap();
+            let w = w.to_dtype(DType::F16).unwrap().to_dtype(DType::F32).unwrap();
+            let w16 = exact_f16(&w).unwrap().expect("f16 values");
             let b = Tensor::randn(0f32, 1.0, out, &dev).unwrap();
             for rows in 1..=MAX_ROWS {
                 let x = Tensor::randn(0f32, 1.0, (rows, input), &dev).unwrap();
-                for bias in [None, Some(&b)] {
-                    let y = linear(&x, &w, bias).unwrap().expect("the kernel applies");
+                for (weight, bias) in [(&w, None), (&w, Some(&b)), (&w16, Some(&b))] {
+                    let y = linear(&x, weight, bias).unwrap().expect("the kernel applies");
                     let tolerance = 1e-5 * input as f32;
                     let gap = max_abs_diff(&y, &general(&x, &w, bias));
-                    assert!(gap < tolerance, "{rows} x {input} -> {out}: {gap}");
+                    let dtype = weight.dtype();
+                    assert!(gap < tolerance, "{rows} x {input} -> {out}, {dtype:?}: {gap}");
                 }
             }
         }
+    }
+
+    #[test]
+    fn an_f16_copy_only_of_weights_that_are_f16_values() {
+        let dev = Device::Cpu;
+        let halves =
+            Tensor::new(&[[0.5f32, -2.0, 1.0 / 1024.0], [65504.0, 0.0, 3.0]], &dev).unwrap();
+        let copy = exact_f16(&halves).unwrap().expect("every value is an f16");
+        assert_eq!(copy.dtype(), DType::F16);
+        assert_eq!(max_abs_diff(&copy.to_dtype(DType::F32).unwrap(), &halves), 0.0);
+        // 0.1 and 65,520 are not f16 values; f64 and f16 weights are not copied.
+        for values in [[0.1f32, 1.0], [65_520.0, 1.0]] {
+            assert!(exact_f16(&Tensor::new(&values, &dev).unwrap()).unwrap().is_none());
+        }
+        assert!(exact_f16(&halves.to_dtype(DType::F64).unwrap()).unwrap().is_none());
+        assert!(exact_f16(&copy).unwrap().is_none());
     }
 
     #[test]
@@ -233,16 +330,12 @@ mod tests {
         let narrow = Tensor::randn(0f32, 1.0, (2, 12), &dev).unwrap();
         let w12 = Tensor::randn(0f32, 1.0, (16, 12), &dev).unwrap();
         assert!(linear(&narrow, &w12, None).unwrap().is_none());
-        let f64_rows = rows(2).to_dtype(candle_core::DType::F64).unwrap();
-        assert!(
-            linear(&f64_rows, &w.to_dtype(candle_core::DType::F64).unwrap(), None)
-                .unwrap()
-                .is_none()
-        );
+        let f64_rows = rows(2).to_dtype(DType::F64).unwrap();
+        assert!(linear(&f64_rows, &w.to_dtype(DType::F64).unwrap(), None).unwrap().is_none());
         let transposed = Tensor::randn(0f32, 1.0, (24, 2), &dev).unwrap().t().unwrap();
         assert!(linear(&transposed, &w, None).unwrap().is_none());
         // A bias of the wrong length, and weights that do not take the rows' width.
-        let short = Tensor::zeros(3, candle_core::DType::F32, &dev).unwrap();
+        let short = Tensor::zeros(3, DType::F32, &dev).unwrap();
         assert!(linear(&rows(2), &w, Some(&short)).unwrap().is_none());
         assert!(linear(&rows(2), &w12, None).unwrap().is_none());
     }

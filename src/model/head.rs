@@ -116,7 +116,7 @@ impl FoldedHead {
         }
         let name = format!("{} folded", head.sub_heads[0].layers().0.name().unwrap_or("head"));
         let on_state =
-            Dense::derived(name, &Tensor::cat(&on_state, 0)?, Some(Tensor::cat(&biases, 0)?))?;
+            Dense::inference(name, &Tensor::cat(&on_state, 0)?, Some(Tensor::cat(&biases, 0)?))?;
         let second = head.sub_heads.iter().map(|m| m.layers().1.clone()).collect();
         let device = embeddings.device().clone();
         Ok(Self { on_state, tables, second, hidden, quant_levels, device })
