@@ -31,8 +31,8 @@ pub fn set_enabled(enabled: bool) {
 
 /// x (rows, in) W^T + bias for W (out, in) and bias (out) on the CPU, contiguous, all f32 but
 /// W, which may be f16; `None` where the kernel does not apply (more than [`MAX_ROWS`] rows,
-/// other dtypes or layouts, `in` not a multiple of 8, a CPU without AVX2, FMA and, for f16,
-/// F16C), for the general path.
+/// other dtypes or layouts, `in` not a multiple of 8, a CPU without AVX2, FMA and F16C), for
+/// the general path.
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Option<Tensor>> {
     let (rows, input) = x.dims2()?;
     let (out, weight_input) = weight.dims2()?;
@@ -51,14 +51,12 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Opti
         },
         None => None,
     };
-    let y =
-        match weight.dtype() {
-            DType::F32 => slice::<f32>(&w_storage, w_layout)
-                .and_then(|ws| kernel::multiply(xs, ws, bs, input)),
-            DType::F16 => slice::<f16>(&w_storage, w_layout)
-                .and_then(|ws| kernel::multiply(xs, ws, bs, input)),
-            _ => None,
-        };
+    let (ws, wl) = (&w_storage, w_layout);
+    let y = match weight.dtype() {
+        DType::F32 => slice(ws, wl).and_then(|w: &[f32]| kernel::multiply(xs, w, bs, input)),
+        DType::F16 => slice(ws, wl).and_then(|w: &[f16]| kernel::multiply(xs, w, bs, input)),
+        _ => None,
+    };
     let Some(y) = y else { return Ok(None) };
     Ok(Some(Tensor::from_vec(y, (rows, out), x.device())?))
 }
@@ -89,23 +87,23 @@ mod kernel {
 
     use half::f16;
 
+    /// Whether this CPU runs the kernel: AVX2, FMA and F16C.
+    pub fn available() -> bool {
+        is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("fma")
+            && is_x86_feature_detected!("f16c")
+    }
+
     /// A weight's element type: f32 as it is, or f16 widened to f32 as it is loaded.
     pub trait Weight: Copy {
-        /// Whether this CPU runs the kernel for it.
-        fn available() -> bool;
-
         /// Eight weights from `at` as f32.
         ///
         /// # Safety
-        /// Eight elements readable from `at`; the CPU features of [`Weight::available`].
+        /// Eight elements readable from `at`; a CPU that runs the kernel ([`available`]).
         unsafe fn load8(at: *const Self) -> __m256;
     }
 
     impl Weight for f32 {
-        fn available() -> bool {
-            is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
-        }
-
         #[inline(always)]
         unsafe fn load8(at: *const f32) -> __m256 {
             // SAFETY: as the caller guarantees.
@@ -114,10 +112,6 @@ mod kernel {
     }
 
     impl Weight for f16 {
-        fn available() -> bool {
-            f32::available() && is_x86_feature_detected!("f16c")
-        }
-
         #[inline(always)]
         unsafe fn load8(at: *const f16) -> __m256 {
             // SAFETY: as the caller guarantees; 8 f16 are 128 bits.
@@ -127,7 +121,7 @@ mod kernel {
 
     /// x (rows, input) W^T + bias, W (out, input), both row-major; `None` unless `input` is a
     /// positive multiple of 8 that divides both, at most [`super::MAX_ROWS`] rows, and this
-    /// CPU runs the kernel for `W`.
+    /// CPU runs the kernel.
     pub fn multiply<W: Weight>(
         x: &[f32],
         w: &[W],
@@ -145,13 +139,13 @@ mod kernel {
         if !(1..=super::MAX_ROWS).contains(&rows) || bias.is_some_and(|b| b.len() != out) {
             return None;
         }
-        if !W::available() {
+        if !available() {
             return None;
         }
         let mut y = vec![0f32; rows * out];
         // Four rows a pass over the weights: their sums fill the registers.
         for (x, y) in x.chunks(4 * input).zip(y.chunks_mut(4 * out)) {
-            // SAFETY: the CPU runs the kernel for W (checked above), and the sizes are as
+            // SAFETY: the CPU runs the kernel (checked above), and the sizes are as
             // `tile` requires: x holds 1 to 4 rows and w `out` rows of `input`, a multiple of
             // 8, and y as many rows of `out`.
             unsafe {
@@ -177,8 +171,8 @@ mod kernel {
     /// then the weight rows left over one at a time.
     ///
     /// # Safety
-    /// The CPU features of `W::available`; x.len() == M * input, w.len() == out * input,
-    /// y.len() == M * out, and `input` a multiple of 8.
+    /// A CPU that runs the kernel ([`available`]); x.len() == M * input, w.len() == out *
+    /// input, y.len() == M * out, and `input` a multiple of 8.
     #[target_feature(enable = "avx2,fma,f16c")]
     unsafe fn tile<W: Weight, const M: usize, const O: usize>(
         x: &[f32],
@@ -245,6 +239,11 @@ mod kernel {
 
 #[cfg(not(target_arch = "x86_64"))]
 mod kernel {
+    #[cfg(test)]
+    pub fn available() -> bool {
+        false
+    }
+
     /// A weight's element type (the kernel is x86-64 only).
     pub trait Weight {}
     impl Weight for f32 {}
@@ -274,19 +273,9 @@ mod tests {
         }
     }
 
-    /// Whether this CPU runs the kernel (for f32 and f16 weights alike).
-    fn kernel_runs() -> bool {
-        #[cfg(target_arch = "x86_64")]
-        return is_x86_feature_detected!("avx2")
-            && is_x86_feature_detected!("fma")
-            && is_x86_feature_detected!("f16c");
-        #[cfg(not(target_arch = "x86_64"))]
-        false
-    }
-
     #[test]
     fn matches_the_general_matmul_for_every_row_count_and_leftover_outputs() {
-        if !kernel_runs() {
+        if !kernel::available() {
             eprintln!("skipped: this CPU has no AVX2, FMA and F16C, and the kernel does not run");
             return;
         }
