@@ -371,9 +371,38 @@ fn rope_differentiable(x: &Tensor, cos: &Tensor, sin: &Tensor) -> Result<Tensor>
     Ok((x.broadcast_mul(&cos)? + rotated.broadcast_mul(&sin)?)?)
 }
 
+/// The most attention scores (f32, 1 MiB) [`attend`] makes at once on the CPU; past them it
+/// takes one head at a time, with the same products. Why: the engine maps blocks from 1 MiB up
+/// on their own (`engine::memory`), so the encoder's cross-attention (4 heads of 128 queries
+/// by 1,024 points, three 2 MiB intermediates) faulted in and zeroed fresh pages in every pass;
+/// a head's 512 KiB come from the heap and stay in the cache between the matmuls and the
+/// softmax. Encoding a whole mesh's 4 clouds took 32 ms against 38 (`docs/decisions.md`, "The
+/// encoder's attention takes a head at a time").
+const CPU_SCORES_AT_ONCE: usize = (1 << 20) / 4;
+
 /// Scaled dot-product attention. q: (B, H, Tq, hd), k/v: (B, H, Tk, hd), `mask` additive and
 /// broadcastable to (B, H, Tq, Tk).
 pub fn attend(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+    let (b, heads, tq, _) = q.dims4()?;
+    let scores = b * heads * tq * k.dim(2)?;
+    // A mask may differ by head, and training keeps every op for its gradients: both whole.
+    if heads == 1
+        || scores <= CPU_SCORES_AT_ONCE
+        || mask.is_some()
+        || q.track_op()
+        || !q.device().is_cpu()
+    {
+        return attend_at_once(q, k, v, mask);
+    }
+    let head = |t: &Tensor, h| t.narrow(1, h, 1);
+    let outs = (0..heads)
+        .map(|h| attend_at_once(&head(q, h)?, &head(k, h)?, &head(v, h)?, None))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Tensor::cat(&outs, 1)?)
+}
+
+/// [`attend`] for every head in one pass.
+fn attend_at_once(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
     let scale = 1.0 / (q.dim(D::Minus1)? as f64).sqrt();
     let w = (q.matmul(&k.t()?)? * scale)?;
     let w = match mask {
@@ -603,6 +632,24 @@ mod tests {
         let fast = detached.forward(&x).unwrap();
         let diff = (tracked - fast).unwrap().abs().unwrap().max_all().unwrap();
         assert!(diff.to_scalar::<f32>().unwrap() < 1e-5);
+    }
+
+    /// Past the scores it makes at once, attention takes a head at a time and gets the same
+    /// values, bit for bit (reconstructions stay byte for byte the same), also for a batch.
+    #[test]
+    fn attention_a_head_at_a_time_is_attention_at_once() {
+        let dev = Device::Cpu;
+        for (b, tq, tk) in [(1, 128, 1024), (3, 64, 700)] {
+            assert!(4 * b * tq * tk > CPU_SCORES_AT_ONCE);
+            let q = Tensor::randn(0f32, 1.0, (b, 4, tq, 16), &dev).unwrap();
+            let k = Tensor::randn(0f32, 1.0, (b, 4, tk, 16), &dev).unwrap();
+            let v = Tensor::randn(0f32, 1.0, (b, 4, tk, 16), &dev).unwrap();
+            let split = attend(&q, &k, &v, None).unwrap();
+            let whole = attend_at_once(&q, &k, &v, None).unwrap();
+            assert_eq!(split.dims(), whole.dims());
+            let (split, whole) = (split.flatten_all().unwrap(), whole.flatten_all().unwrap());
+            assert_eq!(split.to_vec1::<f32>().unwrap(), whole.to_vec1::<f32>().unwrap());
+        }
     }
 
     #[test]
