@@ -376,7 +376,7 @@ fn rope_differentiable(x: &Tensor, cos: &Tensor, sin: &Tensor) -> Result<Tensor>
 /// on their own (`engine::memory`), so the encoder's cross-attention (4 heads of 128 queries
 /// by 1,024 points, three 2 MiB intermediates) faulted in and zeroed fresh pages in every pass;
 /// a head's 512 KiB come from the heap and stay in the cache between the matmuls and the
-/// softmax. Encoding a whole mesh's 4 clouds took 32 ms against 38 (`docs/decisions.md`, "The
+/// softmax. Encoding a whole mesh's 4 clouds took 32 ms against 37-42 (`docs/decisions.md`, "The
 /// encoder's attention takes a head at a time").
 const CPU_SCORES_AT_ONCE: usize = (1 << 20) / 4;
 
