@@ -40,7 +40,7 @@ use crate::tokenize::Quantizer;
 pub use config::EngineConfig;
 pub use encode_stage::{encode_batch, encode_pass};
 pub use error::EngineError;
-pub use memory::map_large_blocks;
+pub use memory::{MAP_FROM_BYTES, map_large_blocks};
 pub use metrics::{Metrics, Stage};
 pub use pools::{DecodePools, PartResult};
 pub use request::{
