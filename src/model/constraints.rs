@@ -176,6 +176,45 @@ pub fn completion_exists(prefix: &[u16], earlier: &[FaceToken], q: usize) -> boo
     }
 }
 
+/// Which values coordinate `prefix.len()` of the next face may take after the sequence
+/// `earlier`, asked a value at a time: a face beam asks only about the few values that could
+/// enter it, not about all q.
+pub struct NextValues<'a> {
+    prefix: &'a [u16],
+    earlier: &'a [FaceToken],
+    q: usize,
+    /// At v2's coordinates every value shares v0 and v1, and so the rule for v2: built once,
+    /// it decides each value as [`completion_exists`] would. `Some(None)`: no v2 can follow.
+    last_vertex: Option<Option<LastVertex>>,
+}
+
+impl<'a> NextValues<'a> {
+    pub fn new(prefix: &'a [u16], earlier: &'a [FaceToken], q: usize) -> Self {
+        let last_vertex = (6..COORDS_PER_FACE).contains(&prefix.len()).then(|| {
+            LastVertex::new(&prefix[..6], earlier, q as u64)
+                .map(|rule| rule.with_line(&prefix[..6], q as u64))
+        });
+        Self { prefix, earlier, q, last_vertex }
+    }
+
+    pub fn allows(&self, value: usize) -> bool {
+        let len = self.prefix.len();
+        if len >= COORDS_PER_FACE || value >= self.q {
+            return false;
+        }
+        let mut candidate = [0u16; COORDS_PER_FACE];
+        candidate[..len].copy_from_slice(self.prefix);
+        candidate[len] = value as u16;
+        match &self.last_vertex {
+            None => completion_exists(&candidate[..=len], self.earlier, self.q),
+            Some(None) => false,
+            Some(Some(rule)) => rule
+                .range(&candidate[6..=len], self.q as u64)
+                .is_some_and(|(lo, hi)| hi - lo + 1 > rule.taken_within(lo, hi)),
+        }
+    }
+}
+
 /// Writes into `allowed` (resized to q) which values coordinate `prefix.len()` of the next
 /// face may take after the sequence `earlier`. Returns how many are allowed.
 pub fn allowed_values(
@@ -184,32 +223,10 @@ pub fn allowed_values(
     q: usize,
     allowed: &mut Vec<bool>,
 ) -> usize {
+    let next = NextValues::new(prefix, earlier, q);
     allowed.clear();
-    allowed.resize(q, false);
-    if prefix.len() >= COORDS_PER_FACE {
-        return 0;
-    }
-    let mut candidate = Vec::with_capacity(COORDS_PER_FACE);
-    candidate.extend_from_slice(prefix);
-    candidate.push(0);
-    // At v2's coordinates every value shares v0 and v1, and so the rule for v2: built once,
-    // it decides each value as `completion_exists` would.
-    let last_vertex = (prefix.len() >= 6)
-        .then(|| LastVertex::new(&prefix[..6], earlier, q as u64))
-        .map(|rule| rule.map(|rule| rule.with_line(&prefix[..6], q as u64)));
-    let mut count = 0;
-    for (v, slot) in allowed.iter_mut().enumerate() {
-        candidate[prefix.len()] = v as u16;
-        *slot = match &last_vertex {
-            None => completion_exists(&candidate, earlier, q),
-            Some(None) => false,
-            Some(Some(rule)) => rule
-                .range(&candidate[6..], q as u64)
-                .is_some_and(|(lo, hi)| hi - lo + 1 > rule.taken_within(lo, hi)),
-        };
-        count += usize::from(*slot);
-    }
-    count
+    allowed.extend((0..q).map(|v| next.allows(v)));
+    allowed.iter().filter(|&&a| a).count()
 }
 
 /// A face that satisfies the constraints after the sequence `earlier`.

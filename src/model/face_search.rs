@@ -18,7 +18,7 @@
 use candle_core::Tensor;
 
 use super::config::COORDS_PER_FACE;
-use super::constraints::allowed_values;
+use super::constraints::{NextValues, allowed_values};
 use super::head::FoldedHead;
 use super::sampling::Sampler;
 use super::{FaceModel, FaceToken, Result};
@@ -78,7 +78,7 @@ pub(super) fn choose_faces(
             let step = Step { j, q, eos_ok: j == 0 && rows[row].eos_ok, logits: &logits };
             let search = &mut rows[row];
             let extended = if search.sampler.is_greedy() {
-                extend_by_beam(search, &partials, start..end, &step, &mut allowed)
+                extend_by_beam(search, &partials, start..end, &step)
             } else {
                 extend_by_sampling(search, &partials[start], start, &step, &mut allowed)
             };
@@ -158,30 +158,39 @@ struct Step<'a> {
 
 /// A greedy row's `beam` most likely extensions (parent index, partial) of its partial faces
 /// `mine` by coordinate `j`; an empty list is a dead end, `Err` is end of mesh.
+///
+/// The masks are asked only about values that could change the outcome: those that would
+/// enter the beam as it stands, and at the first coordinate those at least as likely as end
+/// of mesh. Most of the q values of a partial cannot, and asking costs more than scoring.
 fn extend_by_beam(
     search: &RowSearch,
     partials: &[Partial],
     mine: std::ops::Range<usize>,
     step: &Step,
-    allowed: &mut Vec<bool>,
 ) -> std::result::Result<Vec<(usize, Partial)>, Choice> {
     let (j, q) = (step.j, step.q);
     let beam = search.beam.max(1);
-    let mut kept = Vec::with_capacity(beam + 1);
+    let mut kept: Vec<(usize, Partial)> = Vec::with_capacity(beam + 1);
     for index in mine {
         let p = partials[index];
         let log_probs = log_softmax(&step.logits[index]);
-        allowed_for(search, &p.coords[..j], q, allowed);
+        let mask = search.constrained.then(|| NextValues::new(&p.coords[..j], search.earlier, q));
+        let allowed = |c: usize| mask.as_ref().is_none_or(|mask| mask.allows(c));
         // At the first coordinate (one partial) end of mesh competes with each value; ties
         // go to the value, as in per-coordinate greedy.
-        let best = (0..q).filter(|&c| allowed[c]).map(|c| log_probs[c]).reduce(f32::max);
-        if step.eos_ok && best.is_none_or(|best| log_probs[q] > best) {
+        if step.eos_ok && !(0..q).any(|c| log_probs[c] >= log_probs[q] && allowed(c)) {
             return Err(Choice::EndOfMesh);
         }
-        for c in (0..q).filter(|&c| allowed[c]) {
+        for (c, value_log_prob) in log_probs.iter().enumerate().take(q) {
+            let log_prob = p.log_prob + value_log_prob;
+            // What `keep_best` would turn away whether allowed or not.
+            let full_and_no_better =
+                kept.len() == beam && kept[beam - 1].1.log_prob.total_cmp(&log_prob).is_ge();
+            if full_and_no_better || !allowed(c) {
+                continue;
+            }
             let mut coords = p.coords;
             coords[j] = c as u16;
-            let log_prob = p.log_prob + log_probs[c];
             keep_best(&mut kept, (index, Partial { coords, log_prob, ..p }), beam);
         }
     }
@@ -333,6 +342,88 @@ mod tests {
                 assert!(matches!(a, Choice::Face(_)), "seed {seed}, beam {beam}: {a:?}");
                 assert_eq!(a, b, "seed {seed}, beam {beam}");
             }
+        }
+    }
+
+    /// The beam as it was before the masks were asked lazily: every value's mask, then every
+    /// allowed value offered to the beam. What [`extend_by_beam`] must keep exactly.
+    fn extend_with_full_masks(
+        search: &RowSearch,
+        partials: &[Partial],
+        step: &Step,
+    ) -> std::result::Result<Vec<(usize, Partial)>, Choice> {
+        let (j, q) = (step.j, step.q);
+        let mut kept = Vec::new();
+        let mut allowed = Vec::new();
+        for (index, p) in partials.iter().enumerate() {
+            let log_probs = log_softmax(&step.logits[index]);
+            allowed_for(search, &p.coords[..j], q, &mut allowed);
+            let best = (0..q).filter(|&c| allowed[c]).map(|c| log_probs[c]).reduce(f32::max);
+            if step.eos_ok && best.is_none_or(|best| log_probs[q] > best) {
+                return Err(Choice::EndOfMesh);
+            }
+            for c in (0..q).filter(|&c| allowed[c]) {
+                let mut coords = p.coords;
+                coords[j] = c as u16;
+                let log_prob = p.log_prob + log_probs[c];
+                keep_best(&mut kept, (index, Partial { coords, log_prob, ..*p }), search.beam);
+            }
+        }
+        Ok(kept)
+    }
+
+    proptest! {
+        /// Asking the masks only about values that could enter the beam keeps what asking about
+        /// every value keeps, ties included (small grids, so that the masks bite; whole-number
+        /// logits, so that values tie; the first coordinate, where end of mesh competes, half
+        /// the time).
+        #[test]
+        fn lazy_masks_keep_what_full_masks_keep(
+            q in 2usize..=5,
+            j in prop_oneof![Just(0usize), 0usize..9],
+            faces in proptest::collection::vec(proptest::array::uniform9(0u16..5), 0..12),
+            prefixes in proptest::collection::vec(
+                (proptest::array::uniform9(0u16..5), -4i8..=0),
+                1..4,
+            ),
+            logits in proptest::collection::vec(-3i8..=3, 4 * 6),
+            beam in 1usize..6,
+            eos_ok in any::<bool>(),
+        ) {
+            let mut faces: Vec<FaceToken> =
+                faces.into_iter().map(|f| f.map(|c| c % q as u16)).collect();
+            faces.sort_unstable();
+            let mut earlier: Vec<FaceToken> = Vec::new();
+            for f in faces {
+                if is_valid_next(&f, &earlier, q) {
+                    earlier.push(f);
+                }
+            }
+            let partials: Vec<Partial> = prefixes
+                .iter()
+                .map(|(coords, log_prob)| {
+                    let mut coords = coords.map(|c| c % q as u16);
+                    coords[j..].fill(0);
+                    Partial { row: 0, coords, log_prob: f32::from(*log_prob) }
+                })
+                .collect();
+            let width = if j == 0 { q + 1 } else { q };
+            let logits: Vec<Vec<f32>> = logits
+                .chunks(6)
+                .take(partials.len())
+                .map(|l| l[..width].iter().map(|&v| f32::from(v)).collect())
+                .collect();
+            let step = Step { j, q, eos_ok: eos_ok && j == 0, logits: &logits };
+            let mut sampler = Sampler::new(SamplingParams::greedy());
+            let search =
+                RowSearch { sampler: &mut sampler, earlier: &earlier, constrained: true, eos_ok, beam };
+            let key = |r: std::result::Result<Vec<(usize, Partial)>, Choice>| {
+                r.map(|v| v.iter().map(|(i, p)| (*i, p.coords, p.log_prob)).collect::<Vec<_>>())
+            };
+            prop_assert_eq!(
+                key(extend_by_beam(&search, &partials, 0..partials.len(), &step)),
+                key(extend_with_full_masks(&search, &partials, &step))
+            );
         }
     }
 
