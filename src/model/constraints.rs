@@ -189,6 +189,7 @@ pub struct NextValues<'a> {
 }
 
 impl<'a> NextValues<'a> {
+    /// The values after `prefix`, the next face's coordinates so far.
     pub fn new(prefix: &'a [u16], earlier: &'a [FaceToken], q: usize) -> Self {
         let last_vertex = (6..COORDS_PER_FACE).contains(&prefix.len()).then(|| {
             LastVertex::new(&prefix[..6], earlier, q as u64)
@@ -197,6 +198,7 @@ impl<'a> NextValues<'a> {
         Self { prefix, earlier, q, last_vertex }
     }
 
+    /// Does some completion of the prefix and `value` give a face allowed after `earlier`?
     pub fn allows(&self, value: usize) -> bool {
         let len = self.prefix.len();
         if len >= COORDS_PER_FACE || value >= self.q {
