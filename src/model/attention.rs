@@ -373,11 +373,11 @@ fn rope_differentiable(x: &Tensor, cos: &Tensor, sin: &Tensor) -> Result<Tensor>
 
 /// The most attention scores (f32, 1 MiB) [`attend`] makes at once on the CPU; past them it
 /// takes one head at a time, with the same products. Why: the engine maps blocks from 1 MiB up
-/// on their own ([`crate::engine::MAP_FROM_BYTES`]), so the encoder's cross-attention (4 heads of 128 queries
-/// by 1,024 points, three 2 MiB intermediates) faulted in and zeroed fresh pages in every pass;
-/// a head's 512 KiB come from the heap and stay in the cache between the matmuls and the
-/// softmax. Encoding a whole mesh's 4 clouds took 32 ms against 37-42 (`docs/decisions.md`, "The
-/// encoder's attention takes a head at a time").
+/// on their own ([`crate::engine::MAP_FROM_BYTES`]), so the encoder's cross-attention (4 heads
+/// of 128 queries by 1,024 points, three 2 MiB intermediates) faulted in and zeroed fresh pages
+/// in every pass; a head's 512 KiB come from the heap and stay in the cache between the
+/// matmuls and the softmax. Encoding a whole mesh's 4 clouds took 32 ms against 37-42
+/// (`docs/decisions.md`, "The encoder's attention takes a head at a time").
 const CPU_SCORES_AT_ONCE: usize = crate::engine::MAP_FROM_BYTES / size_of::<f32>();
 
 /// Scaled dot-product attention. q: (B, H, Tq, hd), k/v: (B, H, Tk, hd), `mask` additive and

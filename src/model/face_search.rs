@@ -415,8 +415,13 @@ mod tests {
                 .collect();
             let step = Step { j, q, eos_ok: eos_ok && j == 0, logits: &logits };
             let mut sampler = Sampler::new(SamplingParams::greedy());
-            let search =
-                RowSearch { sampler: &mut sampler, earlier: &earlier, constrained: true, eos_ok, beam };
+            let search = RowSearch {
+                sampler: &mut sampler,
+                earlier: &earlier,
+                constrained: true,
+                eos_ok,
+                beam,
+            };
             let key = |r: std::result::Result<Vec<(usize, Partial)>, Choice>| {
                 r.map(|v| v.iter().map(|(i, p)| (*i, p.coords, p.log_prob)).collect::<Vec<_>>())
             };
