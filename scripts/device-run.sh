@@ -19,8 +19,8 @@
 #                      the CPU at a 1e-2 tolerance first; 0: plain f32
 #   REFERENCE_SECONDS  timed seconds per PyTorch setting, f32 and bf16 (default 20; 0: none)
 #   CHECK_MESHES       held-aside shapes the device check runs (default 8)
-#   BENCH_POSITIONS    batch sizes `meshstream-train bench` times phase by phase before
-#                      training (default 16384,65536; empty: none)
+#   BENCH_POSITIONS    batch sizes `meshstream-train bench --ops` times phase by phase and
+#                      block by block before training (default 16384,65536; empty: none)
 #   TRAIN_ARGS         more `meshstream-train ae` options
 set -uo pipefail
 bundle=$(realpath "${1:?usage: device-run.sh BUNDLE OUT}")
@@ -89,9 +89,10 @@ if [[ $tf32 == 1 ]]; then
     say "check with tf32: $(cat "$logs/check-tf32.json")"
 fi
 
-# Where a step's time goes, phase by phase, before training (none with BENCH_POSITIONS=).
+# Where a step's time goes, phase by phase and block by block (forward and backward), before
+# training (none with BENCH_POSITIONS=).
 if [[ -n $bench_positions ]]; then
-    bench_args=(--model "$check_model" --device "$device" --positions "$bench_positions" --steps 2)
+    bench_args=(--model "$check_model" --device "$device" --positions "$bench_positions" --steps 2 --ops)
     [[ $tf32 == 1 ]] && bench_args+=(--tf32)
     "$train" bench "${bench_args[@]}" >"$logs/bench.txt" 2>&1
     tee -a "$summary" <"$logs/bench.txt"

@@ -93,6 +93,7 @@ fn the_packed_run_trains_on_the_cpu_and_its_weights_load() {
     assert!(stdout.contains("check: {"), "no device check in:\n{stdout}");
     assert!(stdout.contains("faces/s median"), "no throughput in:\n{stdout}");
     assert!(stdout.contains("backward ms"), "no phase timing in:\n{stdout}");
+    assert!(stdout.contains("causal attention core"), "no block timing in:\n{stdout}");
 
     // What comes back from a GPU machine: at most 8 files.
     let files: Vec<_> = walk(&out);

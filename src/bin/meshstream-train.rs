@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use candle_core::DType;
+use candle_core::{DType, Device};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use meshstream::diffusion::{DitConfig, ImageEncoderConfig, LatentStats};
 use meshstream::mesh::{ReadLimits, expand_mesh_paths, read_mesh_file, write_mesh_file};
@@ -15,6 +15,7 @@ use meshstream::tokenize::{DEFAULT_LEVELS, Quantizer};
 use meshstream::train::augment::{AugmentConfig, Rotation};
 use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::bench::{StepPhases, bench_train_step};
+use meshstream::train::bench_ops::bench_ops;
 use meshstream::train::checkpoint::{RunDir, average_dir, export, parse_shard_size};
 use meshstream::train::dataset::load_folder;
 use meshstream::train::device_check::check_device;
@@ -116,6 +117,10 @@ enum Command {
         /// On CUDA, f32 matrix products on TF32 tensor cores.
         #[arg(long)]
         tf32: bool,
+        /// Also time a pass's building blocks one by one (matmul, linear, MLP, layer norm,
+        /// softmax, attention), forward and backward, at the shapes of one pass of each row.
+        #[arg(long)]
+        ops: bool,
         #[arg(long)]
         json: bool,
     },
@@ -456,17 +461,10 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Loss(args) => loss_command(&args),
-        Command::Bench { model, device, positions, steps, max_padding, data, tf32, json } => {
+        Command::Bench { model, device, positions, steps, max_padding, data, tf32, ops, json } => {
             candle_core::cuda::set_gemm_reduced_precision_f32(tf32);
-            bench_command(
-                &model_folder(&model),
-                &device,
-                &positions,
-                steps,
-                max_padding,
-                data,
-                json,
-            )
+            let rows = BenchRows { positions: &positions, steps, max_padding, ops, json };
+            bench_command(&model_folder(&model), &device, &rows, data)
         }
         Command::CheckDevice { model, device, meshes, tolerance, tf32, json } => {
             candle_core::cuda::set_gemm_reduced_precision_f32(tf32);
@@ -663,15 +661,22 @@ fn loss_command(args: &LossArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `meshstream-train bench`: one row per batch size.
+/// What `meshstream-train bench` times: steps of each number of positions, and with `ops`
+/// the blocks of one of their passes.
+struct BenchRows<'a> {
+    positions: &'a [usize],
+    steps: usize,
+    max_padding: f64,
+    ops: bool,
+    json: bool,
+}
+
+/// `meshstream-train bench`: one row per batch size, then with `--ops` one per block and size.
 fn bench_command(
     model: &Path,
     device: &str,
-    positions: &[usize],
-    steps: usize,
-    max_padding: f64,
+    rows: &BenchRows,
     data: Option<PathBuf>,
-    json: bool,
 ) -> anyhow::Result<()> {
     let device = parse_device(device)?;
     let cfg = meshstream::model::checkpoint::load_config(model)
@@ -689,10 +694,13 @@ fn bench_command(
     let mut header = vec!["positions".to_string(), "passes".into(), "faces/s".into()];
     header.extend(StepPhases::PHASES.iter().map(|p| format!("{p} ms")));
     table.set_header(header);
-    for &n in positions {
-        let phases = bench_train_step(model, folder.clone(), n, steps, max_padding, &device)
-            .with_context(|| format!("timing steps of {n} positions"))?;
-        if json {
+    let mut pass_rows = Vec::new();
+    for &n in rows.positions {
+        let phases =
+            bench_train_step(model, folder.clone(), n, rows.steps, rows.max_padding, &device)
+                .with_context(|| format!("timing steps of {n} positions"))?;
+        pass_rows.push((phases.positions as f64 / phases.passes.max(1.0)).round() as usize);
+        if rows.json {
             println!("{}", serde_json::to_string(&phases)?);
             continue;
         }
@@ -704,11 +712,62 @@ fn bench_command(
         row.extend(phases.times().iter().map(|t| format!("{:.1}", t * 1e3)));
         table.add_row(row);
     }
-    if !json {
+    if !rows.json {
         println!("{table}");
         println!(
             "{device:?}, {}: ms per step by phase, each waited out on the device",
             model.display()
+        );
+    }
+    if rows.ops {
+        bench_ops_command(&cfg, &pass_rows, rows, &device)?;
+    }
+    Ok(())
+}
+
+/// `meshstream-train bench --ops`: each block at the shapes of a pass of each of `pass_rows`.
+fn bench_ops_command(
+    cfg: &FaceConfig,
+    pass_rows: &[usize],
+    rows: &BenchRows,
+    device: &Device,
+) -> anyhow::Result<()> {
+    let mut table = comfy_table::Table::new();
+    table.set_header([
+        "pass rows",
+        "block",
+        "input",
+        "forward ms",
+        "backward ms",
+        "backward / forward",
+        "matmul TFLOP/s",
+    ]);
+    for &n in pass_rows {
+        let times = bench_ops(cfg, n, rows.steps, device)
+            .with_context(|| format!("timing the blocks of a pass of {n} positions"))?;
+        for t in times {
+            if rows.json {
+                let mut line = serde_json::to_value(&t)?;
+                line["pass_rows"] = n.into();
+                println!("{line}");
+                continue;
+            }
+            table.add_row([
+                n.to_string(),
+                t.op.to_string(),
+                t.shape.clone(),
+                format!("{:.2}", t.forward_s * 1e3),
+                format!("{:.2}", t.backward_s * 1e3),
+                format!("{:.1}", t.backward_s / t.forward_s.max(f64::EPSILON)),
+                t.matmul_tflops().map_or_else(String::new, |f| format!("{f:.2}")),
+            ]);
+        }
+    }
+    if !rows.json {
+        println!("{table}");
+        println!(
+            "{device:?}: ms per block, forward and backward from its output's sum, each waited \
+             out on the device; matmul TFLOP/s counts the block's matrix products only"
         );
     }
     Ok(())

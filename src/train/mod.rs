@@ -5,6 +5,7 @@ pub mod augment;
 pub mod average;
 pub mod batch;
 pub mod bench;
+pub mod bench_ops;
 pub mod checkpoint;
 pub mod dataset;
 pub mod device_check;
