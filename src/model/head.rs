@@ -109,7 +109,8 @@ impl FoldedHead {
             let weight = weight.to_dtype(DType::F64)?;
             for i in 0..j {
                 let e = embeddings.narrow(0, i * quant_levels, quant_levels)?;
-                let b = weight.narrow(1, d + i * dc, dc)?;
+                // Contiguous: CUDA's matmul takes no column slice (the CPU takes any layout).
+                let b = weight.narrow(1, d + i * dc, dc)?.contiguous()?;
                 let rows = e.matmul(&b.t()?)?.to_dtype(DType::F32)?;
                 tables.extend(rows.flatten_all()?.to_vec1::<f32>()?);
             }
