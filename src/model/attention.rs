@@ -1,9 +1,10 @@
 //! Building blocks shared by the encoder, the face decoder and the per-coordinate baseline:
 //! layer norm, MLP, rotary positions, self- and cross-attention.
 //!
-//! candle's fused kernels (layer norm, softmax, RoPE) have no backward pass, so every block
-//! picks them only when nothing in its input tracks gradients; while training, the
-//! differentiable formulas run instead. The two paths agree to float rounding.
+//! candle's fused layer norm and RoPE have no backward pass, so every block picks them only
+//! when nothing in its input tracks gradients; while training, the differentiable formulas run
+//! instead. The two paths agree to float rounding. The softmax has a backward pass of its own
+//! ([`super::fused_softmax`]).
 
 use std::sync::Arc;
 
@@ -13,6 +14,7 @@ use candle_nn::kv_cache::KvCache;
 use candle_nn::{Init, Linear, VarBuilder};
 
 use super::few_rows;
+use super::fused_softmax::softmax;
 use super::ragged::attend_rows;
 use super::{ModelError, Result};
 
@@ -43,15 +45,6 @@ impl Norm {
         } else {
             Ok(candle_nn::ops::layer_norm(&x.contiguous()?, &self.weight, &self.bias, self.eps)?)
         }
-    }
-}
-
-/// Softmax over the last dimension.
-pub fn softmax(x: &Tensor) -> Result<Tensor> {
-    if x.track_op() {
-        Ok(candle_nn::ops::softmax(x, D::Minus1)?)
-    } else {
-        Ok(candle_nn::ops::softmax_last_dim(x)?)
     }
 }
 

@@ -13,8 +13,9 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::Serialize;
 
 use crate::model::attention::{
-    CrossAttention, Dense, Mlp, Norm, Rope, SelfAttention, attend, causal_mask, softmax,
+    CrossAttention, Dense, Mlp, Norm, Rope, SelfAttention, attend, causal_mask,
 };
+use crate::model::fused_softmax::softmax;
 use crate::model::{FaceConfig, ModelError};
 
 use super::TrainError;
@@ -40,8 +41,8 @@ impl OpTime {
     }
 }
 
-/// The decoder's shapes in one pass of `rows` face positions: sequences as long as the face
-/// limit allows (start token included) while there are rows for one.
+/// The decoder's shapes in one pass of about `rows` face positions: sequences as long as the
+/// face limit allows (start token included), as many as come nearest to `rows`.
 struct PassShape {
     batch: usize,
     len: usize,
@@ -55,7 +56,7 @@ impl PassShape {
     fn new(cfg: &FaceConfig, rows: usize) -> Self {
         let len = (cfg.max_faces + 1).min(rows).max(1);
         Self {
-            batch: (rows / len).max(1),
+            batch: ((rows + len / 2) / len).max(1),
             len,
             width: cfg.decoder.width,
             hidden: cfg.decoder.mlp_hidden,
