@@ -1,10 +1,10 @@
 //! Building blocks shared by the encoder, the face decoder and the per-coordinate baseline:
 //! layer norm, MLP, rotary positions, self- and cross-attention.
 //!
-//! candle's fused layer norm and RoPE have no backward pass, so every block picks them only
-//! when nothing in its input tracks gradients; while training, the differentiable formulas run
-//! instead. The two paths agree to float rounding. The softmax has a backward pass of its own
-//! ([`super::fused_softmax`]).
+//! candle's fused RoPE has no backward pass, so it runs only when nothing in its input tracks
+//! gradients; while training, the differentiable formula runs instead. The two paths agree to
+//! float rounding. The softmax and the layer norm's normalization have backward passes of
+//! their own ([`super::fused`]).
 
 use std::sync::Arc;
 
@@ -14,7 +14,7 @@ use candle_nn::kv_cache::KvCache;
 use candle_nn::{Init, Linear, VarBuilder};
 
 use super::few_rows;
-use super::fused_softmax::softmax;
+use super::fused::{normalize, softmax};
 use super::ragged::attend_rows;
 use super::{ModelError, Result};
 
@@ -41,7 +41,7 @@ impl Norm {
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if tracks(&[x, &self.weight, &self.bias]) {
-            Ok(candle_nn::ops::layer_norm_slow(x, &self.weight, &self.bias, self.eps)?)
+            Ok(normalize(x, self.eps)?.broadcast_mul(&self.weight)?.broadcast_add(&self.bias)?)
         } else {
             Ok(candle_nn::ops::layer_norm(&x.contiguous()?, &self.weight, &self.bias, self.eps)?)
         }

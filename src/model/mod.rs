@@ -55,7 +55,7 @@ mod face;
 mod face_search;
 pub mod few_rows;
 mod fourier;
-pub(crate) mod fused_softmax;
+pub(crate) mod fused;
 mod generate;
 mod head;
 mod input;

@@ -17,7 +17,7 @@ use serde::Serialize;
 use crate::model::attention::{
     CrossAttention, Dense, Mlp, Norm, Rope, SelfAttention, attend, causal_mask,
 };
-use crate::model::fused_softmax::softmax;
+use crate::model::fused::softmax;
 use crate::model::{FaceConfig, ModelError};
 
 use super::TrainError;
