@@ -26,7 +26,7 @@ use super::TrainError;
 #[derive(Debug, Clone, Serialize)]
 pub struct OpTime {
     pub op: &'static str,
-    /// The input's dimensions, e.g. "(18, 401, 256)".
+    /// The input's dimensions, e.g. `[18, 401, 256]`.
     pub shape: String,
     pub forward_s: f64,
     pub backward_s: f64,
