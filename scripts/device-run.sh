@@ -158,6 +158,14 @@ if later:
         f"{phase} {sum(t.get(phase + '_s', 0) for t in timing):.1f} s"
         for phase in ("data_wait", "compute", "update", "average"))
         + f"; {statistics.mean(t.get('groups', 0) for t in timing):.1f} passes per step")
+# The export is the best evaluation's weights (from --init, the weights it started from
+# unless a step beat them).
+evals = [r for r in map(json.loads, open(os.path.join(logs, "log.jsonl")))
+         if r["kind"] == "eval" and r.get("chamfer_mean") is not None]
+if evals:
+    print("evaluation CD by step: " + ", ".join(f"{r['step']}: {r['chamfer_mean']:.4f}" for r in evals))
+    best = min(evals, key=lambda r: r["chamfer_mean"])
+    print(f"exported: the weights of step {best['step']} (CD {best['chamfer_mean']:.4f})")
 gpu = os.path.join(logs, "gpu.csv")
 if os.path.exists(gpu):
     util = [float(l.split(",")[1]) for l in open(gpu) if l.count(",") == 2]

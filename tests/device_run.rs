@@ -94,6 +94,10 @@ fn the_packed_run_trains_on_the_cpu_and_its_weights_load() {
     assert!(stdout.contains("faces/s median"), "no throughput in:\n{stdout}");
     assert!(stdout.contains("backward ms"), "no phase timing in:\n{stdout}");
     assert!(stdout.contains("causal attention core"), "no block timing in:\n{stdout}");
+    // The shipped weights are evaluated before the first step, so the best of the run is
+    // never worse than them.
+    assert!(stdout.contains("evaluation CD by step: 0: "), "no first evaluation in:\n{stdout}");
+    assert!(stdout.contains("exported: the weights of step "), "no best step in:\n{stdout}");
 
     // What comes back from a GPU machine: at most 8 files.
     let files: Vec<_> = walk(&out);

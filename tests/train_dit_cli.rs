@@ -108,6 +108,8 @@ fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
         _ => None,
     });
     let eval = eval.expect("an evaluation at step 8");
+    // The weights from --init were evaluated before the first step.
+    assert!(records.iter().any(|r| matches!(r, LogRecord::DitEval { step: 0, .. })));
     assert_eq!(eval.meshes, if data.is_some() { 2 } else { 1 });
     assert!(eval.loss.is_finite() && eval.mean_faces <= 12.0);
     // Every mesh is either scored or counted as a failure.

@@ -170,7 +170,8 @@ struct AeArgs {
     /// only --steps may change).
     #[arg(long)]
     resume: bool,
-    /// Start from the weights of an exported model with the same configuration.
+    /// Start from the weights of an exported model with the same configuration. They are
+    /// evaluated before the first step, and stay the run's best until a step beats them.
     #[arg(long, conflicts_with = "resume")]
     init: Option<PathBuf>,
     /// Keep the encoder of --init as it is and train the decoder and head only: the latent
@@ -337,7 +338,8 @@ struct DitArgs {
     /// only --steps may change).
     #[arg(long)]
     resume: bool,
-    /// Start from the weights of an exported diffusion model with the same architecture.
+    /// Start from the weights of an exported diffusion model with the same architecture. They
+    /// are evaluated before the first step, and stay the run's best until a step beats them.
     #[arg(long, conflicts_with = "resume")]
     init: Option<PathBuf>,
     /// Diffusion preset: tiny or base (K and the latent width always follow the autoencoder).
@@ -798,7 +800,9 @@ fn train_ae(args: &AeArgs) -> anyhow::Result<()> {
         Trainer::create(config_from_args(args)?, args.out.clone(), args.init.as_deref(), device)?
     };
     print_setup(&trainer.data_summary(), trainer.parameter_counts());
-    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), !args.no_progress)
+    let from_init = args.init.is_some();
+    let progress = !args.no_progress;
+    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), from_init, progress)
 }
 
 fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
@@ -813,7 +817,8 @@ fn train_dit(args: &DitArgs) -> anyhow::Result<()> {
         DitTrainer::create(cfg, args.out.clone(), args.init.as_deref(), device, progress)?
     };
     print_setup(&trainer.data_summary(), trainer.parameter_counts());
-    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), progress)
+    let from_init = args.init.is_some();
+    run_session(&mut trainer, &args.out, args.steps, args.session.limits(), from_init, progress)
 }
 
 /// A new run may not start in a folder that already holds one.
@@ -832,16 +837,17 @@ fn print_setup(data_summary: &str, parameter_counts: HashMap<&'static str, usize
 }
 
 /// Trains until `steps`, one of `limits` or Ctrl-C, then says how the session ended and what
-/// its last evaluation found.
+/// its last evaluation found. A run from `--init` evaluates those weights first.
 fn run_session<T: Steps>(
     trainer: &mut T,
     out: &Path,
     steps: u64,
     limits: SessionLimits,
+    evaluate_first: bool,
     progress: bool,
 ) -> anyhow::Result<()> {
     let stop = stop_flag_on_ctrl_c();
-    let summary = run_loop::run(trainer, &stop, limits, progress)?;
+    let summary = run_loop::run(trainer, &stop, limits, evaluate_first, progress)?;
     let state = &summary.state;
     eprintln!(
         "{} at step {} after {:.0} s of training; checkpoint in {}",

@@ -122,10 +122,17 @@ pub struct RunSummary<R> {
 /// Trains until the configured step count, a stop request or one of `limits` (checkpointed,
 /// to be resumed; the schedule still spans the configured count). A session that runs out of
 /// time evaluates its last step before it ends.
+///
+/// With `evaluate_first`, a run that has taken no step yet evaluates its weights before the
+/// first one (within the time budget). Why: a run that starts from trained weights keeps as
+/// best only what an evaluation saw, and fine-tunings that lowered the loss have decoded worse
+/// than the weights they started from (`docs/decisions.md`, "Training on a GPU"); evaluated
+/// first, those weights stay the best until a step beats them.
 pub fn run<T: Steps>(
     trainer: &mut T,
     stop: &AtomicBool,
     limits: SessionLimits,
+    evaluate_first: bool,
     progress: bool,
 ) -> Result<RunSummary<T::Report>, TrainError> {
     let started = Instant::now();
@@ -149,6 +156,9 @@ pub fn run<T: Steps>(
     };
     // How long the last evaluation took: what the final one is expected to take.
     let mut reserve = None;
+    if evaluate_first && trainer.state().step == 0 {
+        reserve = Some(evaluate(trainer, &mut last_eval)?);
+    }
     while trainer.state().step < end {
         if stop.load(Ordering::SeqCst) {
             interrupted = true;
