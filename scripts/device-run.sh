@@ -120,13 +120,10 @@ if [[ $device == cuda* ]]; then
 fi
 init_args=()
 if [[ -d $init ]]; then
-    # Warm-started: the same face limit and point drawing as the weights, every mesh size from
-    # the first step, and a short warm-up for the fresh optimizer.
-    read -r max_faces oversampling < <(python3 -c 'import json, sys
-c = json.load(open(sys.argv[1]))
-print(c["max_faces"], c.get("point_oversampling", 1))' "$init/config.json")
-    init_args=(--init "$init" --max-faces "$max_faces" --point-oversampling "$oversampling"
-        --curriculum "0:$max_faces" --warmup 50)
+    # Warm-started (the run keeps the weights' face limit and point drawing): every mesh size
+    # from the first step, and a short warm-up for the fresh optimizer.
+    max_faces=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["max_faces"])' "$init/config.json")
+    init_args=(--init "$init" --curriculum "0:$max_faces" --warmup 50)
 fi
 [[ $tf32 == 1 ]] && init_args+=(--tf32)
 # shellcheck disable=SC2086 # TRAIN_ARGS is a list of options

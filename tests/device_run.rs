@@ -105,7 +105,14 @@ fn the_packed_run_trains_on_the_cpu_and_its_weights_load() {
     assert!(out.join("logs.tar.gz").is_file() && out.join("summary.txt").is_file());
     let model = meshstream::model::checkpoint::load(&out.join("model"), &candle_core::Device::Cpu)
         .expect("the exported weights load");
-    assert_eq!(model.config().max_faces, 400, "the shipped model's face limit is kept");
+    let shipped =
+        meshstream::model::checkpoint::load_config(&repo().join("models/default")).unwrap();
+    assert_eq!(model.config().max_faces, shipped.max_faces, "the face limit is kept");
+    assert_eq!(
+        model.config().point_oversampling,
+        shipped.point_oversampling,
+        "the point drawing is kept"
+    );
 }
 
 fn walk(dir: &Path) -> Vec<PathBuf> {

@@ -124,6 +124,23 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert!(before.keys().filter(|n| n.starts_with("encoder.")).all(unchanged));
     assert!(!before.keys().filter(|n| n.starts_with("decoder.layers.")).any(unchanged));
 
+    // A run from trained weights keeps their point drawing unless told otherwise, and
+    // refuses a preset of other layers.
+    let spread = tmp.path().join("spread");
+    export(&frozen, &spread, "f32");
+    let kept = tmp.path().join("kept");
+    run(&kept, data.as_deref(), 4, 0, Start::Init(&spread));
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(kept.join("train.json")).unwrap()).unwrap();
+    assert_eq!(config["model"]["point_oversampling"], 4);
+    let output = train_bin()
+        .args(["ae", "--preset", "base", "--init", spread.to_str().unwrap(), "--out"])
+        .arg(tmp.path().join("other-layers"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("other layers than the \"base\" preset"));
+
     // One run straight through, and one stopped halfway and resumed, both keeping a weight
     // average.
     let average = ["--weight-average", "0.9"];

@@ -189,15 +189,15 @@ struct AeArgs {
     /// checkpoint/average/ beside the raw weights that training continues from.
     #[arg(long)]
     weight_average: Option<f64>,
-    /// Model preset: tiny, base or large.
+    /// Model preset: tiny, base or large (with --init, the one its weights have the layers of).
     #[arg(long, default_value = "tiny")]
     preset: String,
-    /// Override the preset's face limit.
+    /// Override the preset's face limit (with --init, the weights').
     #[arg(long)]
     max_faces: Option<usize>,
     /// Draw the encoder's points as the farthest apart of this many times as many, so that
-    /// they spread evenly (1: drawn independently, the presets' choice). Saved in the model's
-    /// config, so that inference draws them the same way; --init may change it.
+    /// they spread evenly (1: drawn independently, the presets' choice; with --init, the
+    /// weights' own). Saved in the model's config, so that inference draws them the same way.
     #[arg(long)]
     point_oversampling: Option<usize>,
     /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
@@ -937,8 +937,31 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
     })
 }
 
-fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
-    let mut model = FaceConfig::preset(&args.preset)?;
+/// The model to train: the preset's configuration, or with --init the weights' own (the
+/// preset's layers, with their face limit and point drawing), changed by --max-faces and
+/// --point-oversampling.
+///
+/// Why the weights' own: a fine-tuning that fell back to the preset's independent points would
+/// save them in the exported config, and the shipped weights decode the dev split further from
+/// the shape so (greedy CD 0.282 against 0.256; `docs/decisions.md`, "Training on a GPU").
+fn model_config(args: &AeArgs) -> anyhow::Result<FaceConfig> {
+    let preset = FaceConfig::preset(&args.preset)?;
+    let mut model = match &args.init {
+        None => preset,
+        Some(init) => {
+            let own = meshstream::model::checkpoint::load_config(init)
+                .with_context(|| format!("reading the configuration of {}", init.display()))?;
+            let layers = FaceConfig { max_faces: own.max_faces, ..preset };
+            if !layers.same_weights(&own) {
+                bail!(
+                    "{} holds other layers than the {:?} preset: pass its --preset",
+                    init.display(),
+                    args.preset
+                );
+            }
+            own
+        }
+    };
     if let Some(max_faces) = args.max_faces {
         model.max_faces = max_faces;
         model.validate()?;
@@ -947,6 +970,11 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         model.point_oversampling = oversampling;
         model.validate()?;
     }
+    Ok(model)
+}
+
+fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
+    let model = model_config(args)?;
     let augment = AugmentConfig {
         rotation: args.rotation,
         flip_probability: args.flip_probability,
