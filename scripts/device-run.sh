@@ -160,7 +160,10 @@ if later:
 evals = [r for r in map(json.loads, open(os.path.join(logs, "log.jsonl")))
          if r["kind"] == "eval" and r.get("chamfer_mean") is not None]
 if evals:
-    print("evaluation CD by step: " + ", ".join(f"{r['step']}: {r['chamfer_mean']:.4f}" for r in evals))
+    def figures(r):
+        share = (r.get("topology") or {}).get("boundary_share_mean")
+        return f"{r['chamfer_mean']:.4f}" + ("" if share is None else f" ({share:.1%} open edges)")
+    print("evaluation CD by step: " + ", ".join(f"{r['step']}: {figures(r)}" for r in evals))
     best = min(evals, key=lambda r: r["chamfer_mean"])
     print(f"exported: the weights of step {best['step']} (CD {best['chamfer_mean']:.4f})")
 gpu = os.path.join(logs, "gpu.csv")

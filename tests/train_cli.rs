@@ -194,6 +194,11 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
             .collect()
     };
     assert_eq!(evaluated(&straight), [0, 16]);
+    let records = read_log(&straight.join("log.jsonl")).unwrap();
+    assert!(records.iter().all(|r| match r {
+        LogRecord::Eval { report, .. } => report.topology.is_some(),
+        _ => true,
+    }));
     assert_eq!(evaluated(&resumed), [0, 8, 16]);
     let model = tmp.path().join("model");
     export(&resumed, &model, "f16");

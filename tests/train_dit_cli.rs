@@ -112,8 +112,11 @@ fn trains_checkpoints_resumes_exactly_evaluates_exports_and_plots() {
     assert!(records.iter().any(|r| matches!(r, LogRecord::DitEval { step: 0, .. })));
     assert_eq!(eval.meshes, if data.is_some() { 2 } else { 1 });
     assert!(eval.loss.is_finite() && eval.mean_faces <= 12.0);
-    // Every mesh is either scored or counted as a failure.
+    // Every mesh is either scored or counted as a failure, and the topology of every one
+    // with faces is summed up.
     assert!(eval.chamfer_mean.is_some() || eval.failures == eval.meshes);
+    let topology = eval.topology.expect("the topology of what it decoded");
+    assert!(topology.meshes <= eval.meshes && topology.meshes + eval.failures >= eval.meshes);
 
     // Exported in the diffusion checkpoint format, loadable by the library.
     let model = tmp.path().join("model");

@@ -82,13 +82,27 @@ fn welded_faces(mesh: &Mesh) -> Vec<[u32; 3]> {
 
 /// Topology over a set of meshes: means of the per-mesh shares and of the parts, next to the
 /// ground truth's where it is known.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TopologySummary {
     pub meshes: usize,
     /// `None` when there are no meshes.
     pub boundary_share_mean: Option<f64>,
     pub non_manifold_share_mean: Option<f64>,
     pub parts_mean: Option<f64>,
+}
+
+/// "open edges 38.0%, non-manifold 7.3%, parts 3.4", as training logs print it.
+impl std::fmt::Display for TopologySummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let share = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{:.1}%", 100.0 * v));
+        let parts = self.parts_mean.map_or_else(|| "-".into(), |v| format!("{v:.1}"));
+        write!(
+            f,
+            "open edges {}, non-manifold {}, parts {parts}",
+            share(self.boundary_share_mean),
+            share(self.non_manifold_share_mean)
+        )
+    }
 }
 
 pub fn summarize_topology(meshes: &[Topology]) -> TopologySummary {
@@ -107,6 +121,14 @@ pub fn summarize_topology(meshes: &[Topology]) -> TopologySummary {
 mod tests {
     use super::*;
     use crate::mesh::primitives::cuboid;
+
+    #[test]
+    fn a_summary_reads_as_shares_and_parts() {
+        let open = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]]);
+        let summary = summarize_topology(&[topology(&cuboid([1.0; 3])), topology(&open)]);
+        assert_eq!(summary.to_string(), "open edges 50.0%, non-manifold 0.0%, parts 1.0");
+        assert_eq!(summarize_topology(&[]).to_string(), "open edges -, non-manifold -, parts -");
+    }
 
     #[test]
     fn a_closed_box_has_no_boundary_and_one_part() {

@@ -9,8 +9,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::mesh::Mesh;
 use crate::metrics::{
-    DEFAULT_FACE_TOLERANCE, EvalRecord, FaceMatch, MetricOptions, face_match, mesh_distances,
-    summarize, summarize_faces,
+    DEFAULT_FACE_TOLERANCE, EvalRecord, FaceMatch, MetricOptions, Topology, TopologySummary,
+    face_match, mesh_distances, summarize, summarize_faces, summarize_topology, topology,
 };
 use crate::model::{
     CoordinateNll, EncoderTraining, FaceModel, GenerateOptions, Generation, TrainBatch,
@@ -127,6 +127,11 @@ pub struct EvalReport {
     /// long before a whole mesh is right. (None in logs written before it was measured.)
     #[serde(default)]
     pub faces_right: Option<f64>,
+    /// How the reconstructions with faces are put together (`meshstream eval`'s topology:
+    /// shares of open and non-manifold edges, connected parts), which the Chamfer distance
+    /// does not see. (None in logs written before it was measured.)
+    #[serde(default)]
+    pub topology: Option<TopologySummary>,
     /// `loss` and `chamfer_mean` over the folder's meshes and over the procedural shapes
     /// alone: the two can move in opposite directions. (None where a source has no meshes,
     /// and in logs written before they were measured.)
@@ -183,6 +188,7 @@ pub fn evaluate(
         face_count_error: scores.face_count_error,
         exact: scores.exact,
         faces_right: summarize_faces(&scores.face_matches).recall_mean,
+        topology: Some(summarize_topology(&scores.topologies)),
         by_source: Some(by_source),
     })
 }
@@ -193,6 +199,8 @@ struct Scores {
     records: Vec<EvalRecord>,
     /// For every reconstruction; one without faces has none right, counted rather than dropped.
     face_matches: Vec<FaceMatch>,
+    /// For every reconstruction with faces.
+    topologies: Vec<Topology>,
     /// Mean of |predicted faces - true faces| / true faces.
     face_count_error: f64,
     exact: usize,
@@ -204,13 +212,21 @@ fn score(
     q: Quantizer,
     metric: &MetricOptions,
 ) -> Scores {
-    let mut scores =
-        Scores { records: Vec::new(), face_matches: Vec::new(), face_count_error: 0.0, exact: 0 };
+    let mut scores = Scores {
+        records: Vec::new(),
+        face_matches: Vec::new(),
+        topologies: Vec::new(),
+        face_count_error: 0.0,
+        exact: 0,
+    };
     for ((gt, sample), faces) in set.items.iter().zip(predictions) {
         scores.face_count_error +=
             (faces.len() as f64 - sample.faces.len() as f64).abs() / sample.faces.len() as f64;
         scores.exact += usize::from(*faces == sample.faces);
         let pred = detokenize(faces, q);
+        if !pred.faces.is_empty() {
+            scores.topologies.push(topology(&pred));
+        }
         let result = mesh_distances(&pred, gt, metric).map_err(|e| e.to_string());
         let nothing_right = FaceMatch { matched: 0, predicted: faces.len(), truth: gt.faces.len() };
         scores
@@ -489,11 +505,23 @@ mod tests {
         let scores = score(&set, &truth, q, &metric);
         assert_eq!((scores.exact, scores.face_count_error), (4, 0.0));
         assert_eq!(summarize_faces(&scores.face_matches).recall_mean, Some(1.0));
+        // The shapes are closed solids in one piece, and so are their own faces.
+        let closed = TopologySummary {
+            meshes: 4,
+            boundary_share_mean: Some(0.0),
+            non_manifold_share_mean: Some(0.0),
+            parts_mean: Some(1.0),
+        };
+        assert_eq!(summarize_topology(&scores.topologies), closed);
 
         // Dropping each mesh's last face: not exact, one face short of every mesh.
         let short: Vec<Vec<FaceToken>> = truth.iter().map(|f| f[..f.len() - 1].to_vec()).collect();
         let scores = score(&set, &short, q, &metric);
         assert_eq!(scores.exact, 0);
+        // A face short, each has the three open edges of the hole it leaves.
+        for (t, (_, s)) in scores.topologies.iter().zip(&set.items) {
+            assert_eq!((t.faces, t.boundary_edges), (s.faces.len() - 1, 3));
+        }
         for (m, (_, s)) in scores.face_matches.iter().zip(&set.items) {
             assert_eq!((m.matched, m.predicted), (s.faces.len() - 1, s.faces.len() - 1));
         }
@@ -502,6 +530,7 @@ mod tests {
         let scores = score(&set, &vec![Vec::new(); 4], q, &metric);
         assert_eq!(summarize(&scores.records).failures, 4);
         assert_eq!(summarize_faces(&scores.face_matches).recall_mean, Some(0.0));
+        assert!(scores.topologies.is_empty());
     }
 
     #[test]

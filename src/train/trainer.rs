@@ -420,9 +420,10 @@ pub fn eval_line(step: u64, r: &EvalReport) -> String {
             opt(b.chamfer_procedural)
         )
     });
+    let topology = r.topology.map_or_else(String::new, |t| format!("; {t}"));
     format!(
         "eval @ {step}: loss {:.3} ({} with other meshes' points), CD {}, HD {}, failures {}/{}, \
-         exact {}, faces right {}, face-count error {:.2}{by_source}",
+         exact {}, faces right {}, face-count error {:.2}{topology}{by_source}",
         r.loss,
         r.loss_other_points.map_or_else(|| "-".into(), |v| format!("{v:.3}")),
         opt(r.chamfer_mean),

@@ -12,7 +12,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::diffusion::DiffusionModel;
 use crate::mesh::Mesh;
-use crate::metrics::{EvalRecord, MetricOptions, mesh_distances, summarize};
+use crate::metrics::{
+    EvalRecord, MetricOptions, Topology, TopologySummary, mesh_distances, summarize,
+    summarize_topology, topology,
+};
 use crate::model::{FaceModel, GenerateOptions, TrainBatch};
 use crate::tokenize::{Quantizer, detokenize};
 
@@ -110,6 +113,10 @@ pub struct DitEvalReport {
     pub failures: usize,
     /// Mean faces of the decoded meshes.
     pub mean_faces: f64,
+    /// How the decoded meshes with faces are put together (open and non-manifold edges,
+    /// parts). (None in logs written before it was measured.)
+    #[serde(default)]
+    pub topology: Option<TopologySummary>,
     pub seconds: f64,
 }
 
@@ -133,16 +140,19 @@ pub fn evaluate(
     let faces = greedy_decode(autoencoder, &latents, decode)?;
     let q = Quantizer::new(u16::try_from(autoencoder.config().quant_levels).unwrap_or(u16::MAX))?;
     let metric = MetricOptions { samples: opts.metric_samples, ..MetricOptions::default() };
-    let records: Vec<EvalRecord> = faces
+    let decoded: Vec<Mesh> = faces.iter().map(|f| detokenize(f, q)).collect();
+    let records: Vec<EvalRecord> = decoded
         .iter()
         .zip(&set.meshes)
         .zip(&set.names)
-        .map(|((f, gt), name)| EvalRecord {
+        .map(|((pred, gt), name)| EvalRecord {
             name: name.clone(),
-            result: mesh_distances(&detokenize(f, q), gt, &metric).map_err(|e| e.to_string()),
+            result: mesh_distances(pred, gt, &metric).map_err(|e| e.to_string()),
         })
         .collect();
     let summary = summarize(&records);
+    let with_faces: Vec<Topology> =
+        decoded.iter().filter(|m| !m.faces.is_empty()).map(topology).collect();
     Ok(DitEvalReport {
         meshes: n,
         loss,
@@ -150,6 +160,7 @@ pub fn evaluate(
         hausdorff_mean: summary.hausdorff_mean,
         failures: summary.failures,
         mean_faces: faces.iter().map(Vec::len).sum::<usize>() as f64 / n as f64,
+        topology: Some(summarize_topology(&with_faces)),
         seconds: start.elapsed().as_secs_f64(),
     })
 }
@@ -157,13 +168,14 @@ pub fn evaluate(
 pub fn eval_line(step: u64, r: &DitEvalReport) -> String {
     let opt = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{v:.4}"));
     format!(
-        "eval @ {step}: loss {:.4}, CD {}, HD {}, failures {}/{}, mean faces {:.1} ({:.0} s)",
+        "eval @ {step}: loss {:.4}, CD {}, HD {}, failures {}/{}, mean faces {:.1}{} ({:.0} s)",
         r.loss,
         opt(r.chamfer_mean),
         opt(r.hausdorff_mean),
         r.failures,
         r.meshes,
         r.mean_faces,
+        r.topology.map_or_else(String::new, |t| format!("; {t}")),
         r.seconds
     )
 }
