@@ -16,8 +16,9 @@ const SLICE: [(&str, &str); 4] = [
     ("kaykit-city-builder__base.ply", "dev"),
 ];
 
-fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) {
-    run_with(out, data, steps, stop_at, start, &[]);
+/// Runs `meshstream-train ae` to success; returns what it printed on stderr.
+fn run(out: &Path, data: Option<&Path>, steps: u64, stop_at: u64, start: Start) -> String {
+    run_with(out, data, steps, stop_at, start, &[])
 }
 
 fn run_with(
@@ -27,7 +28,7 @@ fn run_with(
     stop_at: u64,
     start: Start,
     extra: &[&str],
-) {
+) -> String {
     let mut cmd = train_bin();
     cmd.args(["ae", "--preset", "tiny", "--no-progress", "--steps", &steps.to_string()]).args([
         "--stop-at",
@@ -50,6 +51,7 @@ fn run_with(
         "meshstream-train failed:\n{}",
         String::from_utf8_lossy(&output.stderr)
     );
+    String::from_utf8_lossy(&output.stderr).into_owned()
 }
 
 fn step_losses(log: &Path) -> Vec<(u64, f64)> {
@@ -129,7 +131,9 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     let spread = tmp.path().join("spread");
     export(&frozen, &spread, "f32");
     let kept = tmp.path().join("kept");
-    run(&kept, data.as_deref(), 4, 0, Start::Init(&spread));
+    let printed = run(&kept, data.as_deref(), 4, 0, Start::Init(&spread));
+    // Without a progress bar every evaluation is printed as it comes.
+    assert!(printed.contains("eval @ 0: ") && printed.contains("open edges"), "{printed}");
     let config: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(kept.join("train.json")).unwrap()).unwrap();
     assert_eq!(config["model"]["point_oversampling"], 4);

@@ -836,8 +836,8 @@ fn print_setup(data_summary: &str, parameter_counts: HashMap<&'static str, usize
     eprintln!("parameters by optimizer: {counts:?}");
 }
 
-/// Trains until `steps`, one of `limits` or Ctrl-C, then says how the session ended and what
-/// its last evaluation found. A run from `--init` evaluates those weights first.
+/// Trains until `steps`, one of `limits` or Ctrl-C (printing each evaluation), then says how
+/// the session ended. A run from `--init` evaluates those weights first.
 fn run_session<T: Steps>(
     trainer: &mut T,
     out: &Path,
@@ -862,9 +862,6 @@ fn run_session<T: Steps>(
         state.elapsed_s,
         RunDir(out.to_path_buf()).checkpoint().display()
     );
-    if let Some((step, report)) = &summary.last_eval {
-        eprintln!("{}", T::report_line(*step, report));
-    }
     Ok(())
 }
 

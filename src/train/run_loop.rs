@@ -107,16 +107,14 @@ impl SessionLimits {
     }
 }
 
-/// How a session ended.
+/// How a session ended (each evaluation was printed as it came).
 #[derive(Debug, Clone)]
-pub struct RunSummary<R> {
+pub struct RunSummary {
     pub state: TrainState,
     /// Stopped by a stop request rather than the schedule or `stop_at`.
     pub interrupted: bool,
     /// Stopped because the time budget was spent.
     pub out_of_time: bool,
-    /// The last evaluation, with its step.
-    pub last_eval: Option<(u64, R)>,
 }
 
 /// Trains until the configured step count, a stop request or one of `limits` (checkpointed,
@@ -134,7 +132,7 @@ pub fn run<T: Steps>(
     limits: SessionLimits,
     evaluate_first: bool,
     progress: bool,
-) -> Result<RunSummary<T::Report>, TrainError> {
+) -> Result<RunSummary, TrainError> {
     let started = Instant::now();
     let (steps, eval_every, checkpoint_every) = {
         let plan = trainer.plan();
@@ -144,13 +142,19 @@ pub fn run<T: Steps>(
     let bar = progress_bar(trainer.state().step, steps, progress);
     let mut session = trainer.begin()?;
     let (mut interrupted, mut out_of_time, mut last_eval) = (false, false, None);
-    // Evaluates, prints and keeps the report; returns how long it took.
-    let evaluate = |trainer: &mut T, last_eval: &mut Option<(u64, T::Report)>| {
+    // Evaluates and prints the report (above the bar, or alone without one); keeps the step
+    // it evaluated; returns how long it took.
+    let evaluate = |trainer: &mut T, last_eval: &mut Option<u64>| {
         let t0 = Instant::now();
         if let Some(report) = bar.suspend(|| trainer.evaluate())? {
             let step = trainer.state().step;
-            bar.println(T::report_line(step, &report));
-            *last_eval = Some((step, report));
+            let line = T::report_line(step, &report);
+            if bar.is_hidden() {
+                eprintln!("{line}")
+            } else {
+                bar.println(line)
+            }
+            *last_eval = Some(step);
         }
         Ok::<_, TrainError>(t0.elapsed())
     };
@@ -166,7 +170,7 @@ pub fn run<T: Steps>(
         }
         if !limits.time_left(started, reserve) {
             out_of_time = true;
-            if last_eval.as_ref().is_none_or(|(s, _)| *s != trainer.state().step) {
+            if last_eval != Some(trainer.state().step) {
                 evaluate(trainer, &mut last_eval)?;
             }
             break;
@@ -184,7 +188,7 @@ pub fn run<T: Steps>(
     }
     trainer.save_checkpoint()?;
     bar.finish_and_clear();
-    Ok(RunSummary { state: trainer.state().clone(), interrupted, out_of_time, last_eval })
+    Ok(RunSummary { state: trainer.state().clone(), interrupted, out_of_time })
 }
 
 fn progress_bar(start: u64, total: u64, visible: bool) -> ProgressBar {
