@@ -198,12 +198,13 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
             .collect()
     };
     assert_eq!(evaluated(&straight), [0, 16]);
+    assert_eq!(evaluated(&resumed), [0, 8, 16]);
+    // Each evaluation reports the topology of what it rebuilt.
     let records = read_log(&straight.join("log.jsonl")).unwrap();
     assert!(records.iter().all(|r| match r {
         LogRecord::Eval { report, .. } => report.topology.is_some(),
         _ => true,
     }));
-    assert_eq!(evaluated(&resumed), [0, 8, 16]);
     let model = tmp.path().join("model");
     export(&resumed, &model, "f16");
     let loaded = meshstream::model::checkpoint::load(&model, &candle_core::Device::Cpu).unwrap();

@@ -8,7 +8,8 @@ use super::TrainError;
 use super::log::LogRecord;
 
 /// Draws two panels: the training loss (raw and smoothed) with the evaluation loss, and the
-/// evaluation Chamfer distance.
+/// evaluation Chamfer distance with the share of open edges of what the evaluation rebuilt
+/// (on its own axis, where the log has it).
 pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> {
     let fail =
         |e: &dyn std::fmt::Display| TrainError::Config(format!("plotting {}: {e}", out.display()));
@@ -19,6 +20,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
     let mut eval_loss = Vec::new();
     let mut eval_other = Vec::new();
     let mut eval_cd = Vec::new();
+    let mut eval_open = Vec::new();
     // A log holds one kind of run; a diffusion run's records name its own loss and pipeline.
     let mut diffusion = false;
     for r in records {
@@ -36,13 +38,18 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
                 if let Some(other) = report.loss_other_points {
                     eval_other.push((*step as f64, other));
                 }
-                (step, (report.loss, report.chamfer_mean))
+                (step, (report.loss, report.chamfer_mean, report.topology))
             }
-            LogRecord::DitEval { step, report, .. } => (step, (report.loss, report.chamfer_mean)),
+            LogRecord::DitEval { step, report, .. } => {
+                (step, (report.loss, report.chamfer_mean, report.topology))
+            }
         };
         eval_loss.push((*step as f64, eval.0));
         if let Some(cd) = eval.1 {
             eval_cd.push((*step as f64, cd));
+        }
+        if let Some(open) = eval.2.and_then(|t| t.boundary_share_mean) {
+            eval_open.push((*step as f64, 100.0 * open));
         }
     }
     let (loss_caption, cd_caption) = if diffusion {
@@ -113,11 +120,30 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .margin(12)
         .x_label_area_size(36)
         .y_label_area_size(56)
+        .right_y_label_area_size(56)
         .build_cartesian_2d(0.0..max_step, 0.0..cd_hi * 1.05)
-        .map_err(|e| fail(&e))?;
+        .map_err(|e| fail(&e))?
+        .set_secondary_coord(0.0..max_step, 0.0..100.0);
     chart.configure_mesh().x_desc("step").draw().map_err(|e| fail(&e))?;
     chart
         .draw_series(LineSeries::new(eval_cd, GREEN.stroke_width(2)).point_size(4))
+        .map_err(|e| fail(&e))?
+        .label("Chamfer distance")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], GREEN.stroke_width(2)));
+    if !eval_open.is_empty() {
+        let purple = RGBColor(130, 60, 170);
+        chart.configure_secondary_axes().y_desc("open edges, %").draw().map_err(|e| fail(&e))?;
+        chart
+            .draw_secondary_series(LineSeries::new(eval_open, purple.stroke_width(2)).point_size(4))
+            .map_err(|e| fail(&e))?
+            .label("open edges (right axis)")
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 16, y)], purple.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
         .map_err(|e| fail(&e))?;
     root.present().map_err(|e| fail(&e))?;
     Ok(())
