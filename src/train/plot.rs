@@ -87,17 +87,17 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .draw_series(LineSeries::new(train.iter().copied(), BLUE.mix(0.25)))
         .map_err(|e| fail(&e))?
         .label("train (raw)")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], BLUE.mix(0.25)));
+        .legend(key(BLUE.mix(0.25)));
     chart
         .draw_series(LineSeries::new(smoothed, BLUE.stroke_width(2)))
         .map_err(|e| fail(&e))?
         .label("train (smoothed)")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], BLUE.stroke_width(2)));
+        .legend(key(BLUE.stroke_width(2)));
     chart
         .draw_series(LineSeries::new(eval_loss.iter().copied(), RED.stroke_width(2)).point_size(4))
         .map_err(|e| fail(&e))?
         .label("evaluation")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], RED.stroke_width(2)));
+        .legend(key(RED.stroke_width(2)));
     if !eval_other.is_empty() {
         // The gap to the evaluation curve is what the decoder reads from the shape's points.
         let orange = RGBColor(230, 140, 0);
@@ -105,7 +105,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
             .draw_series(LineSeries::new(eval_other, orange.stroke_width(2)).point_size(4))
             .map_err(|e| fail(&e))?
             .label("evaluation, another mesh's points")
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 16, y)], orange.stroke_width(2)));
+            .legend(key(orange.stroke_width(2)));
     }
     chart
         .configure_series_labels()
@@ -129,7 +129,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .draw_series(LineSeries::new(eval_cd, GREEN.stroke_width(2)).point_size(4))
         .map_err(|e| fail(&e))?
         .label("Chamfer distance")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 16, y)], GREEN.stroke_width(2)));
+        .legend(key(GREEN.stroke_width(2)));
     if !eval_open.is_empty() {
         let purple = RGBColor(130, 60, 170);
         chart.configure_secondary_axes().y_desc("open edges, %").draw().map_err(|e| fail(&e))?;
@@ -137,7 +137,7 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
             .draw_secondary_series(LineSeries::new(eval_open, purple.stroke_width(2)).point_size(4))
             .map_err(|e| fail(&e))?
             .label("open edges (right axis)")
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 16, y)], purple.stroke_width(2)));
+            .legend(key(purple.stroke_width(2)));
     }
     chart
         .configure_series_labels()
@@ -147,6 +147,12 @@ pub fn plot_curves(records: &[LogRecord], out: &Path) -> Result<(), TrainError> 
         .map_err(|e| fail(&e))?;
     root.present().map_err(|e| fail(&e))?;
     Ok(())
+}
+
+/// A legend's key for a series drawn in `style`: a short stroke.
+fn key(style: impl Into<ShapeStyle>) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)> {
+    let style = style.into();
+    move |(x, y)| PathElement::new([(x, y), (x + 16, y)], style)
 }
 
 fn exponential_moving_average(points: &[(f64, f64)], decay: f64) -> Vec<(f64, f64)> {
