@@ -12,7 +12,9 @@ use std::sync::Arc;
 use candle_core::Tensor;
 use rayon::prelude::*;
 
-use crate::mesh::{FitOptions, FitTarget, Mesh, fit_to_target, sample_surface};
+use crate::mesh::{
+    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, without_stray_parts,
+};
 use crate::metrics::point_set_distances;
 use crate::model::{
     FaceModel, FaceToken, FinishReason, GenerateOptions, Generation, ModelError, SamplingParams,
@@ -40,12 +42,14 @@ pub const DEFAULT_WELD_RADIUS: u16 = 1;
 pub const MAX_WELD_RADIUS: u16 = 4;
 
 /// How a reconstruction ends each candidate before judging it: its corners welded, then
-/// fitted to the input points.
+/// fitted to the input points (and the winner's stray parts dropped).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Ending {
-    /// Corners within this many grid cells merge ([`weld_near_corners`]); 0 keeps them apart.
+    /// Corners within this many grid cells merge, and faces split at corners this close to
+    /// their open edges ([`weld_near_corners`]); 0 keeps them apart.
     pub weld_radius: u16,
-    /// Fitting to the input points; `None` keeps the corners on the grid.
+    /// Fitting to the input points, after which the winner drops the parts the points do not
+    /// need ([`without_stray_parts`]); `None` keeps the corners on the grid and every part.
     pub fit: Option<FitOptions>,
 }
 
@@ -244,7 +248,22 @@ impl Judge {
     ///
     /// Why go on rather than fit its decoded corners afresh: the cheaper fit has already
     /// done most of the moving, and refitting cost about as much as fitting all candidates.
+    ///
+    /// A fitted winner then loses the parts its input points do not need
+    /// ([`without_stray_parts`]).
     pub fn finish(&self, winner: Finished) -> Finished {
+        let finished = self.finish_fit(winner);
+        match (&self.ending.fit, &self.target) {
+            (Some(_), Some(_)) => Finished {
+                mesh: without_stray_parts(&finished.mesh, &self.cloud.vertices, self.seed),
+                ..finished
+            },
+            _ => finished,
+        }
+    }
+
+    /// The winner's fit, gone on or done in full.
+    fn finish_fit(&self, winner: Finished) -> Finished {
         match (self.compare, &self.ending.fit, &self.target, &self.judging_target) {
             (true, Some(fit), Some(target), Some(_)) => {
                 let done = judging_rounds(fit);
@@ -403,12 +422,16 @@ mod tests {
         assert!(decode_candidates(&model, &[], one, || ()).is_err());
     }
 
-    #[test]
-    fn the_candidate_that_ends_closest_to_the_input_points_wins() {
+    /// The 128-level grid, points on a cube's surface, and the cube's faces on the grid.
+    fn cube_and_its_points() -> (Quantizer, Mesh, Vec<FaceToken>) {
         let q = Quantizer::new(128).unwrap();
         let cube = cuboid([1.6, 1.6, 1.6]);
-        let cloud = sample_surface(&cube, 4096, 3).unwrap();
-        let whole = tokenize(&cube, q).faces;
+        (q, sample_surface(&cube, 4096, 3).unwrap(), tokenize(&cube, q).faces)
+    }
+
+    #[test]
+    fn the_candidate_that_ends_closest_to_the_input_points_wins() {
+        let (q, cloud, whole) = cube_and_its_points();
         // Half a cube, the whole cube, and nothing at all.
         let candidates = [&whole[..6], &whole[..], &[]];
         let as_decoded = Ending::default();
@@ -487,11 +510,34 @@ mod tests {
     }
 
     #[test]
+    fn a_fitted_winner_loses_the_parts_its_points_do_not_need() {
+        let (q, cloud, whole) = cube_and_its_points();
+        // Its bottom decoded again two cells below it: a layer of its own over the surface,
+        // which no point needs once fitted.
+        let bottom = whole.iter().map(|f| f[0]).min().unwrap();
+        let layer = whole.iter().filter(|f| [f[0], f[3], f[6]] == [bottom; 3]).map(|f| {
+            let mut lower = *f;
+            for k in [0, 3, 6] {
+                lower[k] -= 2;
+            }
+            lower
+        });
+        let mut cluttered: Vec<FaceToken> = whole.iter().copied().chain(layer).collect();
+        cluttered.sort_unstable();
+        let end = |fit| {
+            let ending = Ending { weld_radius: 0, fit };
+            closest_finished([&cluttered[..]].into_iter(), q, &cloud, &ending, 0).unwrap()
+        };
+        let fitted = end(Some(FitOptions::default()));
+        assert_eq!(fitted.mesh.faces.len(), whole.len());
+        assert_eq!(crate::metrics::topology(&fitted.mesh).parts, 1);
+        // Unfitted, the mesh is the decoded one, layer and all.
+        assert_eq!(end(None).mesh.faces.len(), cluttered.len());
+    }
+
+    #[test]
     fn candidates_are_welded_before_they_are_fitted_and_judged() {
-        let q = Quantizer::new(128).unwrap();
-        let cube = cuboid([1.6, 1.6, 1.6]);
-        let cloud = sample_surface(&cube, 4096, 3).unwrap();
-        let whole = tokenize(&cube, q).faces;
+        let (q, cloud, whole) = cube_and_its_points();
         // One face's corner a cell off: a crack the weld closes, so fitting moves that corner
         // once for every face on it.
         let mut cracked = whole.clone();

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use clap::Subcommand;
 use meshstream::mesh::{
     FitOptions, Format, REFERENCE_POINTS, ReadLimits, farthest_point_sampling, fit_to_points,
-    input_clouds, primitives, read_mesh, sample_surface, write_mesh,
+    input_clouds, primitives, read_mesh, sample_surface, without_stray_parts, write_mesh,
 };
 use meshstream::metrics::{MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -144,6 +144,27 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             format!("{} faces, {n} points", off.faces.len()),
             format!("{:.1} ms", t.as_secs_f64() * 1e3),
             format!("{:.0} rounds/s", fit.rounds as f64 / t.as_secs_f64()),
+        ]);
+    }
+
+    // What a fitted reconstruction's end costs for its parts: the sphere with small cubes
+    // inside it, each weighed against the sphere's own points (so each goes).
+    let points = sample_surface(&truth, REFERENCE_POINTS, 0)?.vertices;
+    for strays in [4, 16] {
+        let mut cluttered = truth.clone();
+        for i in 0..strays {
+            let cube = primitives::cuboid([0.1; 3]).translated([0.02 * i as f32, 0.0, 0.0]);
+            cluttered.append(&cube);
+        }
+        let t = time_per_run(budget, || without_stray_parts(&cluttered, &points, 0));
+        table.add_row([
+            "stray parts".to_string(),
+            format!(
+                "{} faces, {strays} in cubes inside, {REFERENCE_POINTS} points",
+                cluttered.faces.len()
+            ),
+            format!("{:.1} ms", t.as_secs_f64() * 1e3),
+            format!("{:.0} parts/s", strays as f64 / t.as_secs_f64()),
         ]);
     }
     out(&table)?;

@@ -27,8 +27,8 @@ pub struct ConvertArgs {
     #[arg(long, value_name = "Q")]
     quantize: Option<u16>,
     /// With --quantize: then merge corners within this many grid cells of each other on
-    /// every axis, as reconstructions do (`reconstruct --weld-radius`): what welding would do
-    /// to a right mesh.
+    /// every axis and split faces at corners this close to their open edges, as
+    /// reconstructions do (`reconstruct --weld-radius`): what welding would do to a right mesh.
     #[arg(long, value_name = "CELLS", default_value_t = 0, requires = "quantize")]
     weld_radius: u16,
     /// Move the result into the models' frame (bounding box centred at the origin, longest
@@ -50,7 +50,7 @@ pub fn run(args: &ConvertArgs) -> anyhow::Result<()> {
         let faces = weld_near_corners(&tokenized.faces, args.weld_radius);
         if args.weld_radius > 0 {
             eprintln!(
-                "welded corners within {} cells: {} faces -> {}",
+                "welded within {} cells: {} faces -> {}",
                 args.weld_radius,
                 tokenized.faces.len(),
                 faces.len()

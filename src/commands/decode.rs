@@ -104,7 +104,8 @@ pub fn decode_to_file(
     };
     bar.finish_and_clear();
     anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
-    let mesh = normalization.invert_mesh(&mesh);
+    // A reconstruction's ending drops faces but keeps their vertices in order.
+    let mesh = normalization.invert_mesh(&mesh.without_unused_vertices());
     write(&mesh, &args.output, args.format)?;
     eprintln!(
         "wrote {}: {} faces, {} vertices in {:.1} s (stopped by {reason:?})",

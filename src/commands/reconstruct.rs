@@ -33,13 +33,15 @@ pub struct ReconstructArgs {
     #[arg(long, default_value_t = DEFAULT_CANDIDATES, value_parser = candidate_count())]
     candidates: usize,
     /// Rounds of moving each candidate's corners to fit the input points before they are
-    /// judged (the same faces, flat polygons split again for the moved corners); 0 keeps them
-    /// where the model put them.
+    /// judged (the same faces, flat polygons split again for the moved corners); the winner
+    /// then drops the connected parts the points do not need. 0 keeps the corners where the
+    /// model put them, and every part.
     #[arg(long, default_value_t = FitOptions::default().rounds)]
     fit_rounds: usize,
     /// Merge each candidate's corners that lie within this many grid cells of each other on
-    /// every axis, before fitting (at most 4): closes the cracks between faces that should
-    /// share a corner; 0 keeps them as decoded.
+    /// every axis, and split its faces at corners this close to their open edges, before
+    /// fitting (at most 4): closes the cracks between faces that should share a corner or an
+    /// edge; 0 keeps them as decoded.
     #[arg(long, default_value_t = DEFAULT_WELD_RADIUS,
           value_parser = clap::value_parser!(u16).range(..=i64::from(MAX_WELD_RADIUS)))]
     weld_radius: u16,

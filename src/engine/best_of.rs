@@ -105,7 +105,10 @@ pub(super) fn submit(
         };
         let event = match won {
             Ok((mut best, ended)) => {
-                for (index, (token, corners)) in ended_faces(&ended, q).into_iter().enumerate() {
+                let faces = ended_faces(&ended, q);
+                // Ending may drop faces (stray parts): the answer is what is streamed.
+                best.summary.faces = faces.len();
+                for (index, (token, corners)) in faces.into_iter().enumerate() {
                     let vertices = corners.map(|p| normalization.invert(p));
                     let face = StreamedFace { index, token, vertices };
                     if tx.send(Event::Face(face)).await.is_err() {

@@ -160,11 +160,14 @@ pub struct DecodeOptions {
     /// [`crate::candidates::candidate_sampling`]), and keep the one that ends closest to the
     /// input points; points requests only. `None`: 1.
     pub candidates: Option<usize>,
-    /// Rounds of fitting each finished candidate's corners to the input points (`mesh::fit`);
-    /// points requests only. Its faces then arrive together at the end, as with candidates.
-    /// `None` or 0: the corners as decoded, faces as they come.
+    /// Rounds of fitting each finished candidate's corners to the input points (`mesh::fit`),
+    /// after which the winner drops the parts the points do not need
+    /// ([`crate::mesh::without_stray_parts`]); points requests only. Its faces then arrive
+    /// together at the end, as with candidates. `None` or 0: the corners as decoded, faces as
+    /// they come.
     pub fit_rounds: Option<usize>,
-    /// Merge each finished candidate's corners within this many grid cells of each other
+    /// Merge each finished candidate's corners within this many grid cells of each other, and
+    /// split its faces at corners this close to their open edges
     /// ([`crate::tokenize::weld_near_corners`]); points requests only, faces arriving at the
     /// end as with candidates. `None` or 0: faces as they come.
     pub weld_radius: Option<u16>,

@@ -303,10 +303,12 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
         (plain, engine.submit(fitted).unwrap().collect().await.unwrap())
     });
     assert!(work(Stage::End) > 0.0, "fitting is counted as ending candidates");
-    // The same faces as decoded without fitting (this model's have no flat polygons to split
-    // again); only their corners moved.
-    assert_eq!(fitted.tokens, plain.tokens);
-    assert_eq!(fitted.mesh.faces.len(), plain.mesh.faces.len());
+    // The faces as decoded without fitting (this model's have no flat polygons to split
+    // again), less the parts the points do not need; only their corners moved.
+    assert!(!fitted.tokens.is_empty());
+    assert!(fitted.tokens.iter().all(|t| plain.tokens.contains(t)), "{:?}", fitted.tokens);
+    assert_eq!(fitted.mesh.faces.len(), fitted.tokens.len());
+    assert_eq!(fitted.summary.faces, fitted.tokens.len());
     assert_ne!(fitted.mesh.vertices, plain.mesh.vertices);
     let from_points = |mesh: &Mesh| {
         let normalized = normalization.apply_mesh(mesh);

@@ -17,6 +17,7 @@ mod points;
 pub mod primitives;
 mod sample;
 mod stl;
+mod stray_parts;
 mod text;
 pub mod transform;
 
@@ -33,6 +34,7 @@ pub use points::{
     reference_points, spread_points,
 };
 pub use sample::sample_surface;
+pub use stray_parts::{STRAY_TOLERANCE, without_stray_parts};
 
 /// What welds two corners: their exact position. Adding 0.0 turns -0.0 into 0.0, so that
 /// the two zeros weld.
@@ -114,7 +116,6 @@ impl Mesh {
         acc.into_iter().map(normalized).collect()
     }
 
-    /// The three corner positions of a face.
     /// A mesh of `triangles` whose corners at exactly the same position share one vertex,
     /// numbered in order of first appearance.
     pub fn from_triangles(triangles: impl IntoIterator<Item = [[f32; 3]; 3]>) -> Mesh {
@@ -133,6 +134,7 @@ impl Mesh {
         mesh
     }
 
+    /// The three corner positions of a face.
     pub fn triangle(&self, f: &[u32; 3]) -> [[f32; 3]; 3] {
         [self.vertices[f[0] as usize], self.vertices[f[1] as usize], self.vertices[f[2] as usize]]
     }
@@ -140,6 +142,29 @@ impl Mesh {
     /// Total surface area.
     pub fn area(&self) -> f64 {
         self.faces.iter().map(|f| triangle_area(self.triangle(f))).sum()
+    }
+
+    /// The same faces over only the vertices they use, which keep their order (and normals);
+    /// indices must be valid ([`Self::validate`]). A point cloud comes back as it is.
+    pub fn without_unused_vertices(&self) -> Mesh {
+        if self.is_point_cloud() {
+            return self.clone();
+        }
+        let mut index: Vec<Option<u32>> = vec![None; self.vertices.len()];
+        for &c in self.faces.iter().flatten() {
+            index[c as usize] = Some(0);
+        }
+        for (next, slot) in (0..).zip(index.iter_mut().flatten()) {
+            *slot = next;
+        }
+        let used = |values: &[[f32; 3]]| -> Vec<[f32; 3]> {
+            values.iter().zip(&index).filter(|(_, i)| i.is_some()).map(|(v, _)| *v).collect()
+        };
+        Mesh {
+            vertices: used(&self.vertices),
+            faces: self.faces.iter().map(|f| f.map(|c| index[c as usize].unwrap_or(0))).collect(),
+            normals: self.normals.as_deref().map(used),
+        }
     }
 }
 
@@ -200,6 +225,20 @@ mod tests {
         for n in m.face_normals().into_iter().chain(m.vertex_normals()) {
             assert_eq!(n, [0.0, 0.0, 1.0]);
         }
+    }
+
+    #[test]
+    fn unused_vertices_go_and_the_rest_keep_their_order_and_normals() {
+        let mut m = unit_square();
+        m.normals = Some(vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]]);
+        m.faces = vec![[3, 2, 0]];
+        let used = m.without_unused_vertices();
+        assert_eq!(used.vertices, [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]);
+        assert_eq!(used.faces, [[2, 1, 0]]);
+        assert_eq!(used.normals, Some(vec![[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]]));
+        assert_eq!(unit_square().without_unused_vertices(), unit_square());
+        let cloud = Mesh::new(m.vertices.clone(), Vec::new());
+        assert_eq!(cloud.without_unused_vertices(), cloud);
     }
 
     #[test]

@@ -10,17 +10,23 @@ use std::collections::{HashMap, HashSet};
 use super::order::{FaceToken, ZyxVertex, canonical_face, face_vertices, swap_xz, vertex_set_key};
 
 /// `faces` with every corner within `radius` cells (on each axis) of a more used corner moved
-/// onto it where that stitches faces together, in canonical ZYX order, without faces that
-/// were collapsed or repeated as given. A radius of 0 changes nothing but that.
+/// onto it where that stitches faces together, then every face split at a corner within
+/// `radius` cells of one of its open edges where that stitches faces together, in canonical ZYX
+/// order, without faces that were collapsed or repeated as given. A radius of 0 changes nothing
+/// but that.
 ///
 /// Corners are taken from the most used down (ties in ZYX order); each either joins the
 /// nearest kept corner within the radius that it can join, or is kept itself, so a weld never
 /// chains corners further than the radius from where they are kept. A corner joins another
 /// only where one of its faces then shares an edge that had one face (a crack closes), no edge
-/// gets a third face, and no face collapses or repeats another. Why: the two sides of a crack are one corner decoded twice,
-/// on faces that should meet along an edge; two corners of one face a cell apart are an edge
-/// the mesh has (a bevel), and two faces a cell apart with no edge between them are the two
-/// sides of something thin, or parts that only touch.
+/// gets a third face, and no face collapses or repeats another. Why: the two sides of a crack
+/// are one corner decoded twice, on faces that should meet along an edge; two corners of one
+/// face a cell apart are an edge the mesh has (a bevel), and two faces a cell apart with no
+/// edge between them are the two sides of something thin, or parts that only touch.
+///
+/// A face is split at a corner on its edge (a T-junction: the faces across the edge meet it at
+/// a corner between its ends) under the same rule, so that the two halves of the edge are
+/// shared where the whole edge was not ([`Welded::split_edges_at_corners`]).
 pub fn weld_near_corners(faces: &[FaceToken], radius: u16) -> Vec<FaceToken> {
     let mut welded = Welded::of(faces);
     let mut corners: Vec<(ZyxVertex, usize)> =
@@ -35,6 +41,9 @@ pub fn weld_near_corners(faces: &[FaceToken], radius: u16) -> Vec<FaceToken> {
                 kept.insert(corner);
             }
         }
+    }
+    if radius > 0 {
+        welded.split_edges_at_corners(f64::from(radius));
     }
     let mut seen = HashSet::new();
     let mut result: Vec<FaceToken> = welded
@@ -118,6 +127,92 @@ impl Welded {
         stitched
     }
 
+    /// Splits each face whose edge has no other face at a corner of other faces that lies on
+    /// that edge (within `tolerance` cells of it, strictly between its ends), where a half of
+    /// the edge then joins an edge that had one face: a T-junction. The halves split again as
+    /// long as a face can be; each split leaves one open edge fewer, so this ends. It comes
+    /// after the corners are welded, and leaves `faces_of` (the weld's) as it was.
+    fn split_edges_at_corners(&mut self, tolerance: f64) {
+        let mut corners: Vec<ZyxVertex> = self.faces_of.keys().copied().collect();
+        corners.sort_unstable();
+        let mut work: Vec<usize> = (0..self.faces.len()).rev().collect();
+        while let Some(i) = work.pop() {
+            let face = self.faces[i];
+            // A face collapsed as given has no edges to split (and is dropped at the end).
+            if face[0] == face[1] || face[1] == face[2] || face[0] == face[2] {
+                continue;
+            }
+            for k in 0..3 {
+                let (p, q, r) = (face[k], face[(k + 1) % 3], face[(k + 2) % 3]);
+                if self.edges.get(&edge(p, q)) != Some(&1) {
+                    continue;
+                }
+                let Some(v) = self.corner_on_edge(p, q, r, &corners, tolerance) else { continue };
+                let mut near_p = face;
+                near_p[(k + 1) % 3] = v;
+                let mut near_q = face;
+                near_q[k] = v;
+                self.count(i, -1);
+                self.faces[i] = near_p;
+                self.count(i, 1);
+                self.faces.push(near_q);
+                self.count(self.faces.len() - 1, 1);
+                work.extend([self.faces.len() - 1, i]);
+                break;
+            }
+        }
+    }
+
+    /// The corner that splits edge `p`-`q` of face (`p`, `q`, `r`): within `tolerance` cells of
+    /// the segment, strictly between its ends, and such that the split joins an edge that had
+    /// one face, gives no edge a third face, and makes no flat or repeated face. The nearest to
+    /// the segment wins (ties: nearer `p`, then ZYX order).
+    fn corner_on_edge(
+        &self,
+        p: ZyxVertex,
+        q: ZyxVertex,
+        r: ZyxVertex,
+        corners: &[ZyxVertex],
+        tolerance: f64,
+    ) -> Option<ZyxVertex> {
+        let reach = tolerance.ceil() as u16;
+        let low = |k: usize| p[k].min(q[k]).saturating_sub(reach);
+        let high = |k: usize| p[k].max(q[k]).saturating_add(reach);
+        let start = corners.partition_point(|c| c[0] < low(0));
+        let end = corners.partition_point(|c| c[0] <= high(0));
+        let along = sub(q, p);
+        let length2 = dot(along, along);
+        let mut best: Option<(f64, f64, ZyxVertex)> = None;
+        for &v in &corners[start..end] {
+            if v == p || v == q || v == r || (1..3).any(|k| v[k] < low(k) || v[k] > high(k)) {
+                continue;
+            }
+            let to_v = sub(v, p);
+            let t = dot(to_v, along) / length2;
+            let off = dot(to_v, to_v) - t * t * length2;
+            if t <= 0.0 || t >= 1.0 || off > tolerance * tolerance + 1e-9 {
+                continue;
+            }
+            if best.is_some_and(|b| (off, t, v) >= b) || !self.can_split(p, q, r, v) {
+                continue;
+            }
+            best = Some((off, t, v));
+        }
+        best.map(|(_, _, v)| v)
+    }
+
+    /// Whether splitting face (`p`, `q`, `r`) at `v` on its edge `p`-`q` closes a crack and
+    /// keeps the mesh as clean as it was (see [`Self::corner_on_edge`]).
+    fn can_split(&self, p: ZyxVertex, q: ZyxVertex, r: ZyxVertex, v: ZyxVertex) -> bool {
+        let uses = |a, b| self.edges.get(&edge(a, b)).copied().unwrap_or(0);
+        let halves = [uses(p, v), uses(v, q)];
+        let new_faces = [[p, v, r], [v, q, r]];
+        halves.iter().all(|&n| n <= 1)
+            && halves.contains(&1)
+            && uses(v, r) == 0
+            && new_faces.iter().all(|f| !flat(f) && !self.occurs.contains_key(&corner_set(f)))
+    }
+
     fn move_corner(&mut self, from: ZyxVertex, to: ZyxVertex) {
         let Some(moving) = self.faces_of.remove(&from) else { return };
         for &i in &moving {
@@ -144,6 +239,21 @@ fn add<K: std::hash::Hash + Eq>(counts: &mut HashMap<K, usize>, key: K, delta: i
             }
         }
     }
+}
+
+fn sub(a: ZyxVertex, b: ZyxVertex) -> [f64; 3] {
+    [0, 1, 2].map(|k| f64::from(a[k]) - f64::from(b[k]))
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Whether a face's corners lie on one line (exactly, on the grid).
+fn flat([a, b, c]: &[ZyxVertex; 3]) -> bool {
+    let (u, w) = (sub(*b, *a), sub(*c, *a));
+    let cross = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]];
+    cross == [0.0; 3]
 }
 
 /// An edge whatever its direction.
@@ -187,6 +297,8 @@ fn nearest(
 
 #[cfg(test)]
 mod tests {
+    use proptest::prelude::*;
+
     use super::*;
     use crate::mesh::primitives::cuboid;
     use crate::metrics::topology;
@@ -262,6 +374,89 @@ mod tests {
         let mut expected = vec![p, face([a, b, d]), r];
         expected.sort_unstable();
         assert_eq!(welded, expected);
+    }
+
+    /// ZYX corners of a tetrahedron: its edge a-b runs along x.
+    const A: ZyxVertex = [0, 0, 0];
+    const B: ZyxVertex = [0, 0, 40];
+    const C: ZyxVertex = [0, 40, 0];
+    const D: ZyxVertex = [40, 0, 0];
+
+    fn face(v: [ZyxVertex; 3]) -> FaceToken {
+        canonical_face(v.map(swap_xz)).unwrap()
+    }
+
+    fn open_edges(faces: &[FaceToken]) -> usize {
+        topology(&detokenize(faces, Quantizer::new(128).unwrap())).boundary_edges
+    }
+
+    /// The tetrahedron with its face a-b-d split at the corners `on_ab` along a-b, so that face
+    /// a-b-c meets them in T-junctions.
+    fn tetrahedron_split_along_ab(on_ab: &[ZyxVertex]) -> Vec<FaceToken> {
+        let along: Vec<ZyxVertex> = [A].iter().chain(on_ab).chain([&B]).copied().collect();
+        let mut faces: Vec<FaceToken> = along.windows(2).map(|w| face([w[0], w[1], D])).collect();
+        faces.extend([face([A, B, C]), face([A, C, D]), face([B, C, D])]);
+        faces.sort_unstable();
+        faces
+    }
+
+    #[test]
+    fn a_face_splits_at_corners_on_its_open_edge_and_the_tetrahedron_closes() {
+        for on_ab in [&[[0, 0, 20]][..], &[[0, 0, 10], [0, 0, 30]], &[[0, 1, 20]]] {
+            let faces = tetrahedron_split_along_ab(on_ab);
+            assert_eq!(open_edges(&faces), 1 + on_ab.len() + 1);
+            let welded = weld_near_corners(&faces, 1);
+            assert_eq!(open_edges(&welded), 0, "{on_ab:?}");
+            // a-b-c split in as many faces as a-b-d was; the faces keep their winding.
+            assert_eq!(welded.len(), 2 * (on_ab.len() + 1) + 2);
+            assert!(welded.contains(&face([A, on_ab[0], C])));
+            assert!(is_canonical_sequence(&welded));
+            // A radius of 0 leaves the junctions open.
+            assert_eq!(weld_near_corners(&faces, 0), faces);
+        }
+    }
+
+    #[test]
+    fn a_corner_splits_only_within_the_radius_of_the_edge() {
+        let faces = tetrahedron_split_along_ab(&[[0, 2, 20]]);
+        assert_eq!(weld_near_corners(&faces, 1), faces);
+        assert_eq!(open_edges(&weld_near_corners(&faces, 2)), 0);
+    }
+
+    #[test]
+    fn a_corner_on_an_edge_that_stitches_nothing_splits_nothing() {
+        // A face whose corner lies on a-b without an edge along it: parts that touch.
+        let faces = [face([A, B, C]), face([[0, 0, 20], [30, 30, 20], [30, 0, 25]])];
+        let mut sorted = faces.to_vec();
+        sorted.sort_unstable();
+        assert_eq!(weld_near_corners(&sorted, 1), sorted);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+
+        /// On a small grid, where corners and edges often land on each other: welding never
+        /// opens an edge or gives one a third face that deduplicating alone would not, and its
+        /// faces keep their corners on the grid, whole and canonical.
+        #[test]
+        fn welding_closes_cracks_and_opens_none(
+            corners in proptest::collection::vec([0u16..6, 0u16..6, 0u16..6], 9..45),
+            radius in 1u16..3,
+        ) {
+            let mut faces: Vec<FaceToken> = corners
+                .chunks_exact(3)
+                .filter_map(|c| canonical_face([c[0], c[1], c[2]]))
+                .collect();
+            faces.sort_unstable();
+            let q = Quantizer::new(128).unwrap();
+            let plain = topology(&detokenize(&weld_near_corners(&faces, 0), q));
+            let welded = weld_near_corners(&faces, radius);
+            let after = topology(&detokenize(&welded, q));
+            prop_assert!(after.boundary_edges <= plain.boundary_edges);
+            prop_assert!(after.non_manifold_edges <= plain.non_manifold_edges);
+            prop_assert!(is_canonical_sequence(&welded));
+            prop_assert!(welded.iter().flatten().all(|&c| c < 6));
+        }
     }
 
     #[test]

@@ -1,0 +1,234 @@
+//! Stray parts: connected parts of a reconstruction that its input points do not need.
+//!
+//! Why: the shipped model often decodes a second layer of faces over or inside the surface it
+//! already made, or a sliver beside it, each a part of its own. Such a part brings the mesh no
+//! closer to the input points, and a user sees it as clutter (z-fighting, hidden faces, more
+//! parts and open edges). Dropping the parts the points can do without is judged by the
+//! Chamfer distance that chooses among candidates, with the points' half measured to the
+//! surface itself (`docs/decisions.md`, "Stray parts").
+
+use std::collections::HashMap;
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use parry3d_f64::na::Point3;
+use parry3d_f64::query::PointQueryWithLocation;
+use parry3d_f64::shape::TriMesh;
+
+use super::sample::surface_samples;
+use super::{DisjointSets, Mesh, position_key, triangle_area};
+
+/// Surface samples that stand for a mesh's half of the Chamfer distance.
+const SAMPLES: usize = 4096;
+
+/// At most this many of the input points (evenly taken) stand for theirs.
+const PROBES: usize = 2048;
+
+/// A part is dropped when the mesh without it (and without the parts dropped before it) is
+/// at most this share further from the input points, in Chamfer distance, than the whole mesh.
+pub const STRAY_TOLERANCE: f64 = 0.01;
+
+/// `mesh` without the connected parts (faces joined through shared vertices) that the input
+/// `points` do not need: taken from the smallest in area up, a part goes when the Chamfer
+/// distance between the rest and `points` stays within [`STRAY_TOLERANCE`] of the whole mesh's.
+/// That distance is the mean over surface samples (drawn with `seed`) of their distance to the
+/// nearest point, plus the mean over the points of their distance to the surface: measured to
+/// the faces, not to samples, so that two layers over one another are no closer to a point
+/// than one. The largest part always stays. The vertices stay as they are, those of dropped
+/// faces too, as every ending keeps a decoded mesh's vertices in order
+/// ([`Mesh::without_unused_vertices`] drops them for a file). A mesh of one part, without
+/// area, or without points comes back as it is.
+pub fn without_stray_parts(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> Mesh {
+    let part_of = face_parts(mesh);
+    let Some(mut weights) = PartWeights::new(mesh, &part_of, points, seed) else {
+        return mesh.clone();
+    };
+    let mut areas: HashMap<usize, f64> = HashMap::new();
+    for (f, &part) in mesh.faces.iter().zip(&part_of) {
+        *areas.entry(part).or_default() += triangle_area(mesh.triangle(f));
+    }
+    let mut by_area: Vec<(usize, f64)> = areas.into_iter().collect();
+    by_area.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    by_area.pop();
+    let whole = weights.chamfer(&weights.nearest);
+    for (part, _) in by_area {
+        if let Some(nearest) = weights.nearest_without(part)
+            && weights.chamfer_without(part, &nearest) <= whole * (1.0 + STRAY_TOLERANCE)
+        {
+            weights.dropped.push(part);
+            weights.nearest = nearest;
+        }
+    }
+    let kept = mesh.faces.iter().zip(&part_of).filter(|(_, p)| !weights.dropped.contains(p));
+    Mesh { faces: kept.map(|(f, _)| *f).collect(), ..mesh.clone() }
+}
+
+/// Each face's part: the representative of its vertices' set once every face joins its
+/// corners and vertices at one position join (files split them along seams); indices must be
+/// valid.
+fn face_parts(mesh: &Mesh) -> Vec<usize> {
+    let mut sets = DisjointSets::new(mesh.vertices.len());
+    let mut first_at: HashMap<[u32; 3], usize> = HashMap::new();
+    for (i, &p) in mesh.vertices.iter().enumerate() {
+        sets.union(i, *first_at.entry(position_key(p)).or_insert(i));
+    }
+    for &[a, b, c] in &mesh.faces {
+        sets.union(a as usize, b as usize);
+        sets.union(a as usize, c as usize);
+    }
+    mesh.faces.iter().map(|f| sets.find(f[0] as usize).unwrap_or(0)).collect()
+}
+
+/// What the Chamfer distance of a mesh without some of its parts is computed from.
+struct PartWeights<'a> {
+    mesh: &'a Mesh,
+    part_of: &'a [usize],
+    /// Surface samples' parts and distances to the nearest probe.
+    sample_parts: Vec<usize>,
+    accuracy: Vec<f64>,
+    /// The input points that stand for all of them.
+    probes: Vec<Point3<f64>>,
+    /// Each probe's distance to the faces of the parts not dropped, and the part of the
+    /// nearest face.
+    nearest: Vec<(f64, usize)>,
+    dropped: Vec<usize>,
+}
+
+impl<'a> PartWeights<'a> {
+    /// `None` when there is nothing to weigh: one part, no area, or no points.
+    fn new(mesh: &'a Mesh, part_of: &'a [usize], points: &[[f32; 3]], seed: u64) -> Option<Self> {
+        let first = part_of.first()?;
+        if part_of.iter().all(|p| p == first) || points.is_empty() {
+            return None;
+        }
+        let probes: Vec<[f32; 3]> =
+            points.iter().step_by(points.len().div_ceil(PROBES)).copied().collect();
+        let drawn = surface_samples(mesh, SAMPLES, seed).ok()?;
+        let samples: Vec<[f32; 3]> = drawn.iter().map(|s| s.position(mesh)).collect();
+        let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&probes).ok()?;
+        let nearest_probes =
+            tree.query_batch(&samples).nearest_one::<SquaredEuclidean<f32>>().execute();
+        let accuracy = nearest_probes.iter().map(|n| f64::from(n.distance).sqrt());
+        let mut weights = Self {
+            mesh,
+            part_of,
+            sample_parts: drawn.iter().map(|s| part_of[s.face]).collect(),
+            accuracy: accuracy.collect(),
+            probes: probes.iter().map(|p| Point3::from(p.map(f64::from))).collect(),
+            nearest: Vec::new(),
+            dropped: Vec::new(),
+        };
+        let everything = weights.surface_without(None)?;
+        weights.nearest = weights.probes.iter().map(|p| everything.nearest(p)).collect();
+        Some(weights)
+    }
+
+    /// The faces of the parts neither dropped nor `part`; `None` when there are none.
+    fn surface_without(&self, part: Option<usize>) -> Option<Surface> {
+        let gone = |p: &usize| self.dropped.contains(p) || part == Some(*p);
+        let faces: Vec<usize> =
+            (0..self.mesh.faces.len()).filter(|&f| !gone(&self.part_of[f])).collect();
+        let vertices = self.mesh.vertices.iter().map(|v| Point3::from(v.map(f64::from))).collect();
+        let indices = faces.iter().map(|&f| self.mesh.faces[f]).collect();
+        let mesh = TriMesh::new(vertices, indices).ok()?;
+        Some(Surface { mesh, parts: faces.iter().map(|&f| self.part_of[f]).collect() })
+    }
+
+    /// Each probe's nearest face without `part` as well: only probes whose nearest face was
+    /// in `part` move. `None` when no face would be left.
+    fn nearest_without(&self, part: usize) -> Option<Vec<(f64, usize)>> {
+        let rest = self.surface_without(Some(part))?;
+        let moved = |(p, &(d, near)): (&Point3<f64>, &(f64, usize))| {
+            if near == part { rest.nearest(p) } else { (d, near) }
+        };
+        Some(self.probes.iter().zip(&self.nearest).map(moved).collect())
+    }
+
+    /// The Chamfer distance with the probes' distances `nearest`, over the samples of the
+    /// parts not dropped.
+    fn chamfer(&self, nearest: &[(f64, usize)]) -> f64 {
+        self.chamfer_over(nearest, |p| !self.dropped.contains(p))
+    }
+
+    /// As [`Self::chamfer`], without `part`'s samples as well.
+    fn chamfer_without(&self, part: usize, nearest: &[(f64, usize)]) -> f64 {
+        self.chamfer_over(nearest, |p| *p != part && !self.dropped.contains(p))
+    }
+
+    fn chamfer_over(&self, nearest: &[(f64, usize)], kept: impl Fn(&usize) -> bool) -> f64 {
+        let (sum, n) = self
+            .sample_parts
+            .iter()
+            .zip(&self.accuracy)
+            .filter(|(p, _)| kept(p))
+            .fold((0.0, 0usize), |(sum, n), (_, d)| (sum + d, n + 1));
+        if n == 0 {
+            return f64::INFINITY;
+        }
+        sum / n as f64 + nearest.iter().map(|(d, _)| d).sum::<f64>() / nearest.len() as f64
+    }
+}
+
+/// Some of a mesh's faces, ready for nearest-face queries, with each one's part.
+struct Surface {
+    mesh: TriMesh,
+    parts: Vec<usize>,
+}
+
+impl Surface {
+    /// The distance from `point` to the nearest face, and that face's part.
+    fn nearest(&self, point: &Point3<f64>) -> (f64, usize) {
+        let (projection, (face, _)) = self.mesh.project_local_point_and_get_location(point, false);
+        let part = self.parts.get(face as usize).copied().unwrap_or(usize::MAX);
+        ((projection.point - point).norm(), part)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+    use crate::mesh::sample_surface;
+    use crate::metrics::topology;
+
+    /// `mesh` with `other`'s faces added as parts of their own.
+    fn with_parts(mesh: &Mesh, other: &Mesh) -> Mesh {
+        let mut joined = mesh.clone();
+        joined.append(other);
+        joined
+    }
+
+    fn points_on(mesh: &Mesh) -> Vec<[f32; 3]> {
+        sample_surface(mesh, 8192, 7).unwrap().vertices
+    }
+
+    #[test]
+    fn a_box_inside_a_box_and_a_sliver_off_it_go_and_a_second_box_the_points_show_stays() {
+        let big = cuboid([1.0, 1.0, 1.0]);
+        let hidden = cuboid([0.3, 0.3, 0.3]);
+        let sliver =
+            Mesh::new(vec![[0.5, 0.2, 0.2], [0.5, 0.25, 0.2], [0.9, 0.2, 0.22]], vec![[0, 1, 2]]);
+        let neighbour = big.clone().translated([2.0, 0.0, 0.0]);
+        let cluttered = with_parts(&with_parts(&big, &hidden), &sliver);
+        let cleaned = without_stray_parts(&cluttered, &points_on(&big), 0);
+        assert_eq!(cleaned.faces, big.faces);
+        assert_eq!(cleaned.vertices, cluttered.vertices);
+        // The points show both boxes: each explains points the other does not.
+        let pair = with_parts(&big, &neighbour);
+        let points = points_on(&pair);
+        assert_eq!(without_stray_parts(&with_parts(&pair, &hidden), &points, 0).faces, pair.faces);
+        assert_eq!(topology(&without_stray_parts(&pair, &points, 0)).parts, 2);
+    }
+
+    #[test]
+    fn one_part_no_points_or_no_area_come_back_as_they_are() {
+        let big = cuboid([1.0, 1.0, 1.0]);
+        assert_eq!(without_stray_parts(&big, &points_on(&big), 0), big);
+        let two = with_parts(&big, &cuboid([0.3, 0.3, 0.3]));
+        assert_eq!(without_stray_parts(&two, &[], 0), two);
+        let flat = Mesh::new(
+            vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [5.0; 3]],
+            vec![[0, 1, 2], [3, 3, 3]],
+        );
+        assert_eq!(without_stray_parts(&flat, &points_on(&big), 0), flat);
+    }
+}
