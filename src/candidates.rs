@@ -13,7 +13,8 @@ use candle_core::Tensor;
 use rayon::prelude::*;
 
 use crate::mesh::{
-    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, without_stray_parts,
+    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, without_folded_faces,
+    without_stray_parts,
 };
 use crate::metrics::point_set_distances;
 use crate::model::{
@@ -48,8 +49,9 @@ pub struct Ending {
     /// Corners within this many grid cells merge, and faces split at corners this close to
     /// their open edges ([`weld_near_corners`]); 0 keeps them apart.
     pub weld_radius: u16,
-    /// Fitting to the input points, after which the winner drops the parts the points do not
-    /// need ([`without_stray_parts`]); `None` keeps the corners on the grid and every part.
+    /// Fitting to the input points, after which the winner drops its folded faces and the
+    /// parts the points do not need ([`without_folded_faces`], [`without_stray_parts`]);
+    /// `None` keeps the corners on the grid and every face.
     pub fit: Option<FitOptions>,
 }
 
@@ -249,15 +251,16 @@ impl Judge {
     /// Why go on rather than fit its decoded corners afresh: the cheaper fit has already
     /// done most of the moving, and refitting cost about as much as fitting all candidates.
     ///
-    /// A fitted winner then loses the parts its input points do not need
-    /// ([`without_stray_parts`]).
+    /// A fitted winner then loses the faces folded onto a neighbour ([`without_folded_faces`])
+    /// and the parts its input points do not need ([`without_stray_parts`]).
     pub fn finish(&self, winner: Finished) -> Finished {
         let finished = self.finish_fit(winner);
         match (&self.ending.fit, &self.target) {
-            (Some(_), Some(_)) => Finished {
-                mesh: without_stray_parts(&finished.mesh, &self.cloud.vertices, self.seed),
-                ..finished
-            },
+            (Some(_), Some(_)) => {
+                let unfolded = without_folded_faces(&finished.mesh);
+                let mesh = without_stray_parts(&unfolded, &self.cloud.vertices, self.seed);
+                Finished { mesh, ..finished }
+            }
             _ => finished,
         }
     }

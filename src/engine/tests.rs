@@ -304,7 +304,7 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     });
     assert!(work(Stage::End) > 0.0, "fitting is counted as ending candidates");
     // The faces as decoded without fitting (this model's have no flat polygons to split
-    // again), less the parts the points do not need; only their corners moved.
+    // again), less the faces and parts that add nothing; only their corners moved.
     assert!(!fitted.tokens.is_empty());
     assert!(fitted.tokens.iter().all(|t| plain.tokens.contains(t)), "{:?}", fitted.tokens);
     assert_eq!(fitted.mesh.faces.len(), fitted.tokens.len());

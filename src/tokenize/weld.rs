@@ -7,6 +7,8 @@
 use std::collections::hash_map::Entry;
 use std::collections::{HashMap, HashSet};
 
+use parry3d_f64::na::Vector3;
+
 use super::order::{FaceToken, ZyxVertex, canonical_face, face_vertices, swap_xz, vertex_set_key};
 
 /// `faces` with every corner within `radius` cells (on each axis) of a more used corner moved
@@ -180,16 +182,16 @@ impl Welded {
         let high = |k: usize| p[k].max(q[k]).saturating_add(reach);
         let start = corners.partition_point(|c| c[0] < low(0));
         let end = corners.partition_point(|c| c[0] <= high(0));
-        let along = sub(q, p);
-        let length2 = dot(along, along);
+        let along = position(q) - position(p);
+        let length2 = along.norm_squared();
         let mut best: Option<(f64, f64, ZyxVertex)> = None;
         for &v in &corners[start..end] {
             if v == p || v == q || v == r || (1..3).any(|k| v[k] < low(k) || v[k] > high(k)) {
                 continue;
             }
-            let to_v = sub(v, p);
-            let t = dot(to_v, along) / length2;
-            let off = dot(to_v, to_v) - t * t * length2;
+            let to_v = position(v) - position(p);
+            let t = to_v.dot(&along) / length2;
+            let off = to_v.norm_squared() - t * t * length2;
             if t <= 0.0 || t >= 1.0 || off > tolerance * tolerance + 1e-9 {
                 continue;
             }
@@ -241,19 +243,14 @@ fn add<K: std::hash::Hash + Eq>(counts: &mut HashMap<K, usize>, key: K, delta: i
     }
 }
 
-fn sub(a: ZyxVertex, b: ZyxVertex) -> [f64; 3] {
-    [0, 1, 2].map(|k| f64::from(a[k]) - f64::from(b[k]))
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+fn position(v: ZyxVertex) -> Vector3<f64> {
+    Vector3::from(v.map(f64::from))
 }
 
 /// Whether a face's corners lie on one line (exactly, on the grid).
 fn flat([a, b, c]: &[ZyxVertex; 3]) -> bool {
-    let (u, w) = (sub(*b, *a), sub(*c, *a));
-    let cross = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]];
-    cross == [0.0; 3]
+    let (u, w) = (position(*b) - position(*a), position(*c) - position(*a));
+    u.cross(&w) == Vector3::zeros()
 }
 
 /// An edge whatever its direction.
