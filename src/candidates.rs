@@ -43,7 +43,7 @@ pub const DEFAULT_WELD_RADIUS: u16 = 1;
 pub const MAX_WELD_RADIUS: u16 = 4;
 
 /// How a reconstruction ends each candidate before judging it: its corners welded, then
-/// fitted to the input points (and the winner's stray parts dropped).
+/// fitted to the input points (and the winner's folded faces and stray parts dropped).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Ending {
     /// Corners within this many grid cells merge, and faces split at corners this close to

@@ -2,11 +2,11 @@
 //! faces share. The shipped model often decodes a surface twice where two of its layers meet,
 //! and the extra face makes the edge non-manifold without adding any surface.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 
 use parry3d_f64::na::Vector3;
 
-use super::{Mesh, position_key, triangle_area};
+use super::{Mesh, triangle_area};
 
 /// Two faces on one edge are folded onto each other when the directions from the edge to their
 /// third corners are within this angle (degrees).
@@ -23,10 +23,11 @@ const COVER_SLACK: f64 = 0.05;
 /// corner lies within the other face once projected onto it. Of a pair the smaller face is
 /// tried first; the edges are taken in order of their corners, once each, and a pair whose
 /// other face has gone no longer counts. The vertices stay as they are (see
-/// [`super::without_stray_parts`]).
+/// [`super::without_stray_parts`]); indices must be valid ([`Mesh::validate`]).
 pub fn without_folded_faces(mesh: &Mesh) -> Mesh {
-    let corner = canonical_corners(mesh);
-    let faces: Vec<[usize; 3]> = mesh.faces.iter().map(|f| f.map(|c| corner[c as usize])).collect();
+    let first = mesh.first_vertex_at_each_position();
+    let faces: Vec<[usize; 3]> =
+        mesh.faces.iter().map(|f| f.map(|c| first[c as usize] as usize)).collect();
     let mut on_edge: BTreeMap<[usize; 2], Vec<usize>> = BTreeMap::new();
     for (i, f) in faces.iter().enumerate() {
         if f[0] != f[1] && f[1] != f[2] && f[0] != f[2] {
@@ -40,7 +41,7 @@ pub fn without_folded_faces(mesh: &Mesh) -> Mesh {
         on_edge.iter().filter(|(_, fs)| fs.len() > 2).map(|(&e, _)| e).collect();
     for e in shared {
         for f in folded_on(mesh, &faces, e, &on_edge[&e], &dropped) {
-            let opens = edges(&faces[f]).iter().any(|e| live(&on_edge[e], &dropped) == 2);
+            let opens = edges(&faces[f]).iter().any(|edge| live(&on_edge[edge], &dropped) == 2);
             if !dropped[f] && !opens && live(&on_edge[&e], &dropped) > 2 {
                 dropped[f] = true;
             }
@@ -48,16 +49,6 @@ pub fn without_folded_faces(mesh: &Mesh) -> Mesh {
     }
     let kept = mesh.faces.iter().zip(&dropped).filter(|(_, d)| !**d).map(|(f, _)| *f);
     Mesh { faces: kept.collect(), ..mesh.clone() }
-}
-
-/// Each vertex as the first vertex at its position (files split vertices along seams).
-fn canonical_corners(mesh: &Mesh) -> Vec<usize> {
-    let mut first_at: HashMap<[u32; 3], usize> = HashMap::new();
-    let mut corner = Vec::with_capacity(mesh.vertices.len());
-    for (i, &p) in mesh.vertices.iter().enumerate() {
-        corner.push(*first_at.entry(position_key(p)).or_insert(i));
-    }
-    corner
 }
 
 fn edges(&[a, b, c]: &[usize; 3]) -> [[usize; 2]; 3] {

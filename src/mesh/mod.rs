@@ -146,6 +146,16 @@ impl Mesh {
         self.faces.iter().map(|f| triangle_area(self.triangle(f))).sum()
     }
 
+    /// For each vertex, the first vertex at exactly its position: files split vertices along
+    /// seams (normals, UVs), which is not a hole in the surface.
+    pub fn first_vertex_at_each_position(&self) -> Vec<u32> {
+        let mut first_at: std::collections::HashMap<[u32; 3], u32> = Default::default();
+        (0..)
+            .zip(&self.vertices)
+            .map(|(i, &p)| *first_at.entry(position_key(p)).or_insert(i))
+            .collect()
+    }
+
     /// The same faces over only the vertices they use, which keep their order (and normals);
     /// indices must be valid ([`Self::validate`]). A point cloud comes back as it is.
     pub fn without_unused_vertices(&self) -> Mesh {

@@ -15,7 +15,7 @@ use parry3d_f64::query::PointQueryWithLocation;
 use parry3d_f64::shape::TriMesh;
 
 use super::sample::surface_samples;
-use super::{DisjointSets, Mesh, position_key, triangle_area};
+use super::{DisjointSets, Mesh, triangle_area};
 
 /// Surface samples that stand for a mesh's half of the Chamfer distance.
 const SAMPLES: usize = 4096;
@@ -36,7 +36,7 @@ pub const STRAY_TOLERANCE: f64 = 0.01;
 /// than one. The largest part always stays. The vertices stay as they are, those of dropped
 /// faces too, as every ending keeps a decoded mesh's vertices in order
 /// ([`Mesh::without_unused_vertices`] drops them for a file). A mesh of one part, without
-/// area, or without points comes back as it is.
+/// area, or without points comes back as it is; indices must be valid ([`Mesh::validate`]).
 pub fn without_stray_parts(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> Mesh {
     let part_of = face_parts(mesh);
     let Some(mut weights) = PartWeights::new(mesh, &part_of, points, seed) else {
@@ -67,9 +67,8 @@ pub fn without_stray_parts(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> Mesh 
 /// valid.
 fn face_parts(mesh: &Mesh) -> Vec<usize> {
     let mut sets = DisjointSets::new(mesh.vertices.len());
-    let mut first_at: HashMap<[u32; 3], usize> = HashMap::new();
-    for (i, &p) in mesh.vertices.iter().enumerate() {
-        sets.union(i, *first_at.entry(position_key(p)).or_insert(i));
+    for (i, first) in mesh.first_vertex_at_each_position().into_iter().enumerate() {
+        sets.union(i, first as usize);
     }
     for &[a, b, c] in &mesh.faces {
         sets.union(a as usize, b as usize);

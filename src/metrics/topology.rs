@@ -5,7 +5,7 @@
 
 use std::collections::HashMap;
 
-use crate::mesh::{DisjointSets, Mesh, position_key};
+use crate::mesh::{DisjointSets, Mesh};
 
 use super::faces::ratio;
 
@@ -63,13 +63,7 @@ pub fn topology(mesh: &Mesh) -> Topology {
 /// Each valid face with its corners replaced by the first vertex at the same position,
 /// without the faces that collapse to an edge or a point.
 fn welded_faces(mesh: &Mesh) -> Vec<[u32; 3]> {
-    let mut first_at: HashMap<[u32; 3], u32> = HashMap::new();
-    let canonical: Vec<u32> = mesh
-        .vertices
-        .iter()
-        .enumerate()
-        .map(|(i, &p)| *first_at.entry(position_key(p)).or_insert(i as u32))
-        .collect();
+    let canonical = mesh.first_vertex_at_each_position();
     mesh.faces
         .iter()
         .filter_map(|f| {
