@@ -40,14 +40,16 @@ pub struct ReconstructOptions {
     #[param(minimum = 1, maximum = 16)]
     pub candidates: Option<usize>,
     /// Rounds of moving each candidate's corners to fit the input points (the same faces,
-    /// flat polygons split again for the moved corners; at most 200); 0 keeps them as decoded.
-    /// Default: the server's setting for a whole mesh (see `/v1/info`), 0 for a stream. Above
-    /// 0, every face arrives at the end.
+    /// flat polygons split again for the moved corners; at most 200), after which the winner
+    /// drops the faces folded onto a neighbour that covers them and the connected parts the
+    /// points do not need; 0 keeps them as decoded. Default: the server's setting for a whole
+    /// mesh (see `/v1/info`), 0 for a stream. Above 0, every face arrives at the end.
     #[param(maximum = 200)]
     pub fit_rounds: Option<usize>,
     /// Merge the corners of each candidate that lie within this many grid cells of each other
-    /// on every axis, before fitting (at most 4): closes the cracks between faces that should
-    /// share a corner; 0 keeps them as decoded. Default: the server's setting for a whole mesh
+    /// on every axis, and split its faces at corners this close to their open edges, before
+    /// fitting (at most 4): closes the cracks between faces that should share a corner or an
+    /// edge; 0 keeps them as decoded. Default: the server's setting for a whole mesh
     /// (1 unless configured, see `/v1/info`), 0 for a stream. Above 0, every face arrives at
     /// the end.
     #[param(maximum = 4)]
