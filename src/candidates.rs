@@ -251,7 +251,7 @@ impl Judge {
     /// Why go on rather than fit its decoded corners afresh: the cheaper fit has already
     /// done most of the moving, and refitting cost about as much as fitting all candidates.
     ///
-    /// A fitted winner then loses the faces folded onto a neighbour ([`without_folded_faces`])
+    /// A fitted winner then loses the faces that lie on other faces ([`without_folded_faces`])
     /// and the parts its input points do not need ([`without_stray_parts`]).
     pub fn finish(&self, winner: Finished) -> Finished {
         let finished = self.finish_fit(winner);

@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 use clap::Subcommand;
 use meshstream::mesh::{
     FitOptions, Format, REFERENCE_POINTS, ReadLimits, farthest_point_sampling, fit_to_points,
-    input_clouds, primitives, read_mesh, sample_surface, without_stray_parts, write_mesh,
+    input_clouds, primitives, read_mesh, sample_surface, without_folded_faces, without_stray_parts,
+    write_mesh,
 };
 use meshstream::metrics::{MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -167,6 +168,17 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             format!("{:.0} parts/s", strays as f64 / t.as_secs_f64()),
         ]);
     }
+    // The worst a whole mesh's folded faces can be: every face decoded twice, so that every
+    // edge is non-manifold and every face lies on another.
+    let mut twice = truth.clone();
+    twice.append(&truth);
+    let t = time_per_run(budget, || without_folded_faces(&twice));
+    table.add_row([
+        "folded faces".to_string(),
+        format!("{} faces, each twice", truth.faces.len()),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.0} faces/s", twice.faces.len() as f64 / t.as_secs_f64()),
+    ]);
     out(&table)?;
     Ok(())
 }

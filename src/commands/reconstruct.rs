@@ -34,8 +34,8 @@ pub struct ReconstructArgs {
     candidates: usize,
     /// Rounds of moving each candidate's corners to fit the input points before they are
     /// judged (the same faces, flat polygons split again for the moved corners); the winner
-    /// then drops faces folded onto a neighbour that covers them and the connected parts the
-    /// points do not need. 0 keeps the corners where the model put them, and every face.
+    /// then drops the faces that lie on other faces and the connected parts the points do not
+    /// need. 0 keeps the corners where the model put them, and every face.
     #[arg(long, default_value_t = FitOptions::default().rounds)]
     fit_rounds: usize,
     /// Merge each candidate's corners that lie within this many grid cells of each other on

@@ -41,9 +41,9 @@ pub struct ReconstructOptions {
     pub candidates: Option<usize>,
     /// Rounds of moving each candidate's corners to fit the input points (the same faces,
     /// flat polygons split again for the moved corners; at most 200), after which the winner
-    /// drops the faces folded onto a neighbour that covers them and the connected parts the
-    /// points do not need; 0 keeps them as decoded. Default: the server's setting for a whole
-    /// mesh (see `/v1/info`), 0 for a stream. Above 0, every face arrives at the end.
+    /// drops the faces that lie on other faces and the connected parts the points do not
+    /// need; 0 keeps them as decoded. Default: the server's setting for a whole mesh (see
+    /// `/v1/info`), 0 for a stream. Above 0, every face arrives at the end.
     #[param(maximum = 200)]
     pub fit_rounds: Option<usize>,
     /// Merge the corners of each candidate that lie within this many grid cells of each other
