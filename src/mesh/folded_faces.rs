@@ -71,6 +71,7 @@ pub fn without_folded_faces(mesh: &Mesh) -> Mesh {
     let kept = mesh.faces.iter().zip(&dropped).filter(|(_, d)| !**d).map(|(f, _)| *f);
     Mesh { faces: kept.collect(), ..mesh.clone() }
 }
+
 fn edges(&[a, b, c]: &[usize; 3]) -> [[usize; 2]; 3] {
     [[a.min(b), a.max(b)], [b.min(c), b.max(c)], [a.min(c), a.max(c)]]
 }
@@ -92,7 +93,7 @@ fn lies_on_others(f: usize, planes: &[Option<Plane>], is_other: impl Fn(usize) -
     let others: Vec<&Plane> = (0..planes.len())
         .filter(|&g| is_other(g))
         .filter_map(|g| planes[g].as_ref())
-        .filter(|other| other.normal.dot(&face.normal).abs() > cos)
+        .filter(|other| other.normal.dot(&face.normal).abs() > cos && other.near(face, reach))
         .collect();
     face.grid().all(|p| others.iter().any(|other| other.holds(&p, reach)))
 }
@@ -109,6 +110,23 @@ impl Plane {
         let [a, b, c] = corners;
         let normal = (b - a).cross(&(c - a)).try_normalize(0.0)?;
         Some(Plane { corners, normal })
+    }
+
+    /// Whether the box around this face, grown by as far as [`Self::holds`] reaches (`reach`
+    /// off the plane, `COVER_SLACK` past the sides), meets the box around `other`: a cheap test
+    /// that leaves most faces of a large mesh out before any point is checked.
+    fn near(&self, other: &Plane, reach: f64) -> bool {
+        let margin = reach + 2.0 * COVER_SLACK * self.longest_side();
+        (0..3).all(|axis| {
+            let (lo, hi) = self.span(axis);
+            let (other_lo, other_hi) = other.span(axis);
+            lo - margin <= other_hi && other_lo <= hi + margin
+        })
+    }
+
+    fn span(&self, axis: usize) -> (f64, f64) {
+        let along = self.corners.map(|c| c[axis]);
+        (along[0].min(along[1]).min(along[2]), along[0].max(along[1]).max(along[2]))
     }
 
     fn longest_side(&self) -> f64 {
