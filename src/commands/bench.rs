@@ -168,8 +168,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             format!("{:.0} parts/s", strays as f64 / t.as_secs_f64()),
         ]);
     }
-    // The worst a whole mesh's folded faces can be: every face decoded twice, so that every
-    // edge is non-manifold and every face lies on another.
+    // A whole mesh decoded twice over: every edge non-manifold, every face lying on another.
     let mut twice = truth.clone();
     twice.append(&truth);
     let t = time_per_run(budget, || without_folded_faces(&twice));
