@@ -4,7 +4,8 @@
 
 use std::collections::BTreeMap;
 
-use parry3d_f64::na::Vector3;
+use parry3d_f64::bounding_volume::{Aabb, BoundingVolume};
+use parry3d_f64::na::{Point3, Vector3};
 
 use super::{Mesh, triangle_area};
 
@@ -55,11 +56,13 @@ pub fn without_folded_faces(mesh: &Mesh) -> Mesh {
     while changed {
         changed = false;
         for &f in &order {
+            if dropped[f] {
+                continue;
+            }
             let counts = edges(&faces[f]).map(|e| live(&on_edge[&e], &dropped));
             let opens = counts.iter().filter(|&&n| n == 2).count();
             let closes = counts.iter().filter(|&&n| n == 1).count();
-            if !dropped[f]
-                && counts.iter().any(|&n| n > 2)
+            if counts.iter().any(|&n| n > 2)
                 && opens <= closes
                 && lies_on_others(f, &planes, |g| g != f && !dropped[g])
             {
@@ -98,10 +101,11 @@ fn lies_on_others(f: usize, planes: &[Option<Plane>], is_other: impl Fn(usize) -
     face.grid().all(|p| others.iter().any(|other| other.holds(&p, reach)))
 }
 
-/// A face's corners and unit normal.
+/// A face's corners, unit normal and bounding box.
 struct Plane {
     corners: [Point; 3],
     normal: Point,
+    bounds: Aabb,
 }
 
 impl Plane {
@@ -109,24 +113,17 @@ impl Plane {
     fn of(corners: [Point; 3]) -> Option<Plane> {
         let [a, b, c] = corners;
         let normal = (b - a).cross(&(c - a)).try_normalize(0.0)?;
-        Some(Plane { corners, normal })
+        let bounds = Aabb::from_points(&corners.map(Point3::from));
+        Some(Plane { corners, normal, bounds })
     }
 
     /// Whether the box around this face, grown by as far as [`Self::holds`] reaches (`reach`
     /// off the plane, `COVER_SLACK` past the sides), meets the box around `other`: a cheap test
     /// that leaves most faces of a large mesh out before any point is checked.
     fn near(&self, other: &Plane, reach: f64) -> bool {
-        let margin = reach + 2.0 * COVER_SLACK * self.longest_side();
-        (0..3).all(|axis| {
-            let (lo, hi) = self.span(axis);
-            let (other_lo, other_hi) = other.span(axis);
-            lo - margin <= other_hi && other_lo <= hi + margin
-        })
-    }
-
-    fn span(&self, axis: usize) -> (f64, f64) {
-        let along = self.corners.map(|c| c[axis]);
-        (along[0].min(along[1]).min(along[2]), along[0].max(along[1]).max(along[2]))
+        let margin = Vector3::repeat(reach + 2.0 * COVER_SLACK * self.longest_side());
+        let grown = Aabb::new(self.bounds.mins - margin, self.bounds.maxs + margin);
+        grown.intersects(&other.bounds)
     }
 
     fn longest_side(&self) -> f64 {
