@@ -202,7 +202,10 @@ try {
   assert.equal(refused.status, 400);
   await writeFile(`${artifacts}/broken.ply`, broken);
   await fileInput.uploadFile(`${artifacts}/broken.ply`);
-  await page.waitForFunction(() => document.body.dataset.state === 'error');
+  // The page is still in the last step's error while it reads the file: wait for this one's.
+  await page.waitForFunction((previous) => document.body.dataset.state === 'error'
+    && document.getElementById('input-name').textContent.startsWith('broken.ply')
+    && document.getElementById('error').textContent !== previous, {}, result.limit_error_text);
   result.error_text = await text('#error');
   assert.equal(result.error_text, `400 ${error.code}: ${error.message}`);
   await shoot('error');
