@@ -5,14 +5,14 @@
 # result against the ground truth with `meshstream eval` (DESIGN.md's CD/HD, both in the
 # normalized frame, since an image carries no scale or position).
 # Usage: scripts/evaluate-image.sh [MODEL_DIR] [OUT_DIR] [GUIDANCE] [STEPS] [GENERATE FLAGS...],
-# e.g. --temperature 0.
+# e.g. --temperature 0. GUIDANCE and STEPS default to the server's (8 and 25).
 # GUIDANCE 0 ignores the image: the unconditional lower bound.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 model=${1:-models/default}
 out=${2:-target/eval-image}
-guidance=${3:-2}
-steps=${4:-50}
+guidance=${3:-8}
+steps=${4:-25}
 shift $(($# < 4 ? $# : 4))
 data=../shared/data
 bin="${CARGO_TARGET_DIR:-target}/release/meshstream"

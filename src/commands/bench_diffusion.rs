@@ -37,7 +37,7 @@ pub struct DiffusionBenchArgs {
     #[arg(long, value_delimiter = ',', default_values_t = [1, 8])]
     batch: Vec<usize>,
     /// Euler steps of each image request.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = ImageServeConfig::default().steps)]
     steps: usize,
     /// Guidance scale of the image requests.
     #[arg(long, default_value_t = ImageServeConfig::default().guidance)]
