@@ -21,6 +21,9 @@ cargo build --release --quiet --bin meshstream
 # sqrt(3) / sin(20 degrees): the distance at which the normalized cube fits a 40-degree view.
 distance=5.0642
 mkdir -p "$out/gt" "$out/views" "$out/pred"
+# VARIANT=tight|offcentre|offjpeg|greybg in the environment generates from the views reframed as
+# users take pictures (scripts/picture-variants.py, run with Pillow and NumPy in a venv under
+# target/), written to OUT/VARIANT.
 # EVERY=N in the environment takes every N-th dev mesh (the first, the N+1-th, ...): a quicker check.
 awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | awk -v n="${EVERY:-1}" 'NR % n == 1 % n' \
   | while read -r f; do
@@ -28,9 +31,22 @@ awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | awk 
   [ -f "$out/gt/$name.ply" ] || "$bin" convert "$data/lowpoly/$f" "$out/gt/$name.ply" --normalize 2>/dev/null
   [ -f "$out/views/$name.png" ] || "$bin" render "$data/lowpoly/$f" -o "$out/views/$name.png" \
     --views 1 --size 256 --azimuth 30 --elevation 20 --fov 40 --distance "$distance" 2>/dev/null
-  RAYON_NUM_THREADS=1 "$bin" generate "$out/views/$name.png" -o "$out/pred/$name.glb" \
+  echo "$name"
+done > "$out/names.txt"
+if [ -n "${VARIANT:-}" ]; then
+  venv="${CARGO_TARGET_DIR:-target}/picture-venv"
+  [ -x "$venv/bin/python" ] || { python3 -m venv "$venv" && "$venv/bin/pip" install --quiet pillow numpy; }
+  "$venv/bin/python" scripts/picture-variants.py "$VARIANT" "$out/views" "$out/$VARIANT"
+fi
+while read -r name; do
+  picture="$out/views/$name.png"
+  if [ -n "${VARIANT:-}" ]; then
+    picture=$(ls "$out/$VARIANT/$name".* 2>/dev/null || true)
+    [ -n "$picture" ] || { echo "no $VARIANT picture for $name" >&2; continue; }
+  fi
+  RAYON_NUM_THREADS=1 "$bin" generate "$picture" -o "$out/pred/$name.glb" \
     --model "$model" --guidance "$guidance" --steps "$steps" "$@" 2>/dev/null \
     || echo "no mesh for $name" >&2
-done
+done < "$out/names.txt"
 echo "== lowpoly dev split, image -> mesh (guidance $guidance, $steps steps)"
 "$bin" eval --pred "$out/pred" --gt "$out/gt" | tail -n 6

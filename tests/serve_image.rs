@@ -144,9 +144,12 @@ async fn a_png_becomes_a_mesh_and_streams_progress_then_faces() {
     let info: Value =
         client.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["image_model"]["config"]["num_latents"], 128);
+    assert_eq!(info["image_model"]["default_framing"], "object");
     let api: Value =
         client.get(server.url("/openapi.json")).send().await.unwrap().json().await.unwrap();
     assert!(api["paths"]["/generate"]["post"].is_object(), "{}", api["paths"]);
+    let parameters = api["paths"]["/generate"]["post"]["parameters"].as_array().unwrap();
+    assert!(parameters.iter().any(|p| p["name"] == "framing"), "{parameters:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -179,6 +182,7 @@ async fn bad_images_and_options_get_4xx_and_the_server_survives() {
         ("/generate?stepz=3", 422),
         ("/generate?format=fbx", 422),
         ("/generate?max_faces=0", 422),
+        ("/generate?framing=tight", 422),
     ];
     for (url, status) in cases {
         let r = client.post(server.url(url)).body(image.clone()).send().await.unwrap();
@@ -232,6 +236,11 @@ async fn grpc_streams_progress_then_faces_and_refuses_bad_images() {
         let status = grpc.generate_from_image(request(bad)).await.unwrap_err();
         assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
     }
+    let mut framed = request(png(40, 40));
+    framed.options.as_mut().unwrap().framing = Some("tight".into());
+    let status = grpc.generate_from_image(framed).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("centre_crop"), "{status:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,7 +4,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use indicatif::ProgressBar;
-use meshstream::diffusion::{ImageOptions, decode_image, images_to_tensor};
+use meshstream::diffusion::{Framing, ImageOptions, decode_image, images_to_tensor};
 use meshstream::mesh::Normalization;
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::ImageServeConfig;
@@ -35,6 +35,10 @@ pub struct GenerateArgs {
     /// Classifier-free guidance: 0 ignores the image, 1 is plain conditional sampling.
     #[arg(long, default_value_t = ImageServeConfig::default().guidance)]
     guidance: f32,
+    /// object: the object found, centred and scaled as in the image model's training renders,
+    /// its backdrop painted white; centre_crop: the largest centred square, as given.
+    #[arg(long, default_value_t = ImageServeConfig::default().framing)]
+    framing: Framing,
     /// Seed of the diffusion noise, and of the decoding when it samples.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -56,8 +60,9 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
     let size = u32::try_from(diffusion.config().image_encoder.image_size())?;
     let bytes =
         std::fs::read(&args.image).with_context(|| format!("reading {}", args.image.display()))?;
-    let image = decode_image(&bytes, &ImageOptions::new(size))
-        .with_context(|| format!("decoding {}", args.image.display()))?;
+    let image =
+        decode_image(&bytes, &ImageOptions { framing: args.framing, ..ImageOptions::new(size) })
+            .with_context(|| format!("decoding {}", args.image.display()))?;
     let start = Instant::now();
     let images = images_to_tensor(&[image], &device)?;
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);

@@ -6,6 +6,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS};
+use meshstream::diffusion::Framing;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
 use meshstream::model::{Quantize, parse_device};
@@ -135,6 +136,11 @@ pub struct ServeArgs {
     /// Guidance scale of an image request that does not say.
     #[arg(long, env = "MESHSTREAM_GUIDANCE", default_value_t = ImageServeConfig::default().guidance)]
     guidance: f32,
+    /// How an image request that does not say is framed: object (found, centred and scaled
+    /// as in the image model's training renders, backdrop painted white) or centre_crop (the
+    /// largest centred square, as given).
+    #[arg(long, env = "MESHSTREAM_IMAGE_FRAMING", default_value_t = ImageServeConfig::default().framing)]
+    image_framing: Framing,
     /// Largest width and height of an uploaded image, in pixels.
     #[arg(long, env = "MESHSTREAM_MAX_IMAGE_SIDE", default_value_t = ImageServeConfig::default().max_side)]
     max_image_side: u32,
@@ -232,6 +238,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         image: ImageServeConfig {
             steps: args.diffusion_steps,
             guidance: args.guidance,
+            framing: args.image_framing,
             max_side: args.max_image_side,
         },
         ui: !args.no_ui,

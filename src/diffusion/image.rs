@@ -2,15 +2,16 @@
 //!
 //! The header's dimensions are checked against the configured limits before any pixel is
 //! decoded, and the decoder itself runs under `image::Limits`, so a small file that claims a
-//! huge image is refused cheaply. Transparent pixels are composited on a background colour
-//! (renders of objects usually come with alpha), then the largest centred square is cropped
-//! and resized to the encoder's input size.
+//! huge image is refused cheaply. Then the picture is framed ([`super::framing`]): by default
+//! the object is found, centred and scaled as in the image model's training renders, on their
+//! white background; transparent pixels are composited on that background.
 
 use std::io::Cursor;
 
 use candle_core::{Device, Tensor};
-use image::imageops::FilterType;
-use image::{DynamicImage, ImageError, ImageReader, Limits, Rgb, RgbImage};
+use image::{DynamicImage, ImageError, ImageReader, Limits};
+
+use super::framing::{Framing, frame};
 
 use crate::model::Result;
 
@@ -36,8 +37,9 @@ pub enum ImageInputError {
 pub struct ImageOptions {
     /// Side of the square output in pixels (the image encoder's input size).
     pub size: u32,
-    /// RGB colour that transparent pixels are composited on.
+    /// RGB colour that transparent pixels are composited on and a found backdrop painted.
     pub background: [u8; 3],
+    pub framing: Framing,
     pub max_width: u32,
     pub max_height: u32,
     /// Memory the decoder may allocate, in bytes.
@@ -45,11 +47,13 @@ pub struct ImageOptions {
 }
 
 impl ImageOptions {
-    /// White background, images up to 4096 x 4096, 256 MiB for the decoder.
+    /// White background, the object framed, images up to 4096 x 4096, 256 MiB for the
+    /// decoder.
     pub fn new(size: u32) -> Self {
         Self {
             size,
             background: [255, 255, 255],
+            framing: Framing::Object,
             max_width: 4096,
             max_height: 4096,
             max_alloc: 256 << 20,
@@ -110,8 +114,8 @@ fn reader(bytes: &[u8], limits: Limits) -> Result<ImageReader<Cursor<&[u8]>>, Im
     Ok(reader)
 }
 
-/// Decodes `bytes`, composites alpha on the background, centre-crops to a square and resizes
-/// to `opts.size`. Never panics; every failure is an [`ImageInputError`].
+/// Decodes `bytes` and frames the picture as `opts` say, at `opts.size`. Never panics; every
+/// failure is an [`ImageInputError`].
 pub fn decode_image(bytes: &[u8], opts: &ImageOptions) -> Result<PreparedImage, ImageInputError> {
     let (width, height) = reader(bytes, opts.header_limits())?
         .into_dimensions()
@@ -134,24 +138,12 @@ pub fn decode_image(bytes: &[u8], opts: &ImageOptions) -> Result<PreparedImage, 
     Ok(prepare(&image, opts))
 }
 
-/// Alpha composite, centre crop, resize: the part after decoding.
+/// Framing and the channel-major floats: the part after decoding.
 fn prepare(image: &DynamicImage, opts: &ImageOptions) -> PreparedImage {
-    let side = image.width().min(image.height());
-    let square = image
-        .crop_imm((image.width() - side) / 2, (image.height() - side) / 2, side, side)
-        .to_rgba8();
-    let bg = opts.background.map(f32::from);
-    let composited = RgbImage::from_fn(side, side, |x, y| {
-        let p = square.get_pixel(x, y).0;
-        let alpha = f32::from(p[3]) / 255.0;
-        Rgb(std::array::from_fn(|c| {
-            (f32::from(p[c]) * alpha + bg[c] * (1.0 - alpha)).round().clamp(0.0, 255.0) as u8
-        }))
-    });
-    let resized = image::imageops::resize(&composited, opts.size, opts.size, FilterType::Triangle);
+    let framed = frame(&image.to_rgba8(), opts.size, opts.background, opts.framing);
     let size = opts.size as usize;
     let mut pixels = vec![0f32; 3 * size * size];
-    for (x, y, p) in resized.enumerate_pixels() {
+    for (x, y, p) in framed.enumerate_pixels() {
         for c in 0..3 {
             pixels[(c * size + y as usize) * size + x as usize] = f32::from(p.0[c]) / 255.0;
         }
@@ -174,7 +166,7 @@ pub fn images_to_tensor(images: &[PreparedImage], device: &Device) -> Result<Ten
 #[cfg(test)]
 mod tests {
     use super::*;
-    use image::{ImageFormat, Rgba, RgbaImage};
+    use image::{ImageFormat, Rgb, RgbImage, Rgba, RgbaImage};
     use proptest::prelude::*;
 
     fn encode(image: &DynamicImage, format: ImageFormat) -> Vec<u8> {
@@ -201,7 +193,8 @@ mod tests {
             [(ImageFormat::Png, 0.01), (ImageFormat::WebP, 0.01), (ImageFormat::Jpeg, 0.12)]
         {
             let bytes = encode(&source, format);
-            let img = decode_image(&bytes, &ImageOptions::new(12)).unwrap();
+            let opts = ImageOptions { framing: Framing::CentreCrop, ..ImageOptions::new(12) };
+            let img = decode_image(&bytes, &opts).unwrap();
             assert_eq!(img.size(), 12);
             assert_eq!(img.pixels().len(), 3 * 12 * 12);
             // The centred 24 x 24 square spans x = 8..32, half red and half blue.
@@ -220,8 +213,11 @@ mod tests {
             if x < 4 { Rgba([0, 0, 0, 0]) } else { Rgba([255, 0, 0, 128]) }
         });
         let bytes = encode(&DynamicImage::ImageRgba8(rgba), ImageFormat::Png);
-        let mut opts = ImageOptions::new(8);
-        opts.background = [0, 255, 0];
+        let opts = ImageOptions {
+            background: [0, 255, 0],
+            framing: Framing::CentreCrop,
+            ..ImageOptions::new(8)
+        };
         let img = decode_image(&bytes, &opts).unwrap();
         assert_eq!(pixel(&img, 0, 0), [0.0, 1.0, 0.0]);
         let p = pixel(&img, 7, 0);

@@ -4,7 +4,7 @@
 //!
 //! - [`config`]: [`DitConfig`] with presets `tiny` (CPU) and `base` (the paper's ~350M).
 //! - [`image`]: bytes (PNG/JPEG/WebP) to a square RGB image, with limits checked before
-//!   decoding.
+//!   decoding; [`framing`] finds the object and frames it as in the training renders.
 //! - [`image_encoder`]: image to tokens: a patch encoder trained with the DiT (default) or a
 //!   frozen DINOv2 backbone.
 //! - [`dit`]: the velocity network (adaLN-Zero blocks with self- and cross-attention).
@@ -20,6 +20,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod dit;
 pub mod flow;
+pub mod framing;
 pub mod image;
 pub mod image_encoder;
 pub mod latent_model;
@@ -29,6 +30,7 @@ pub use config::{
 };
 pub use dit::{Dit, DitCondition};
 pub use flow::{Guidance, RowStep, VelocityField};
+pub use framing::Framing;
 pub use image::{ImageInputError, ImageOptions, PreparedImage, decode_image, images_to_tensor};
 pub use image_encoder::{Dinov2Encoder, ImageEncoder, PatchEncoder};
 pub use latent_model::{DiffusionModel, LatentSampling, latent_stats};

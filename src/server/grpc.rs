@@ -125,6 +125,7 @@ impl GrpcService {
                 top_p: o.top_p,
                 face_beam: o.face_beam.map(|n| n as usize),
                 format: None,
+                framing: o.framing,
             },
         };
         let parsed = tokio::task::spawn_blocking(move || upload.parse(&defaults))

@@ -6,7 +6,7 @@ use axum::http::{HeaderMap, StatusCode};
 use serde::Deserialize;
 use utoipa::{IntoParams, ToSchema};
 
-use crate::diffusion::{ImageInputError, ImageOptions, decode_image};
+use crate::diffusion::{Framing, ImageInputError, ImageOptions, decode_image};
 use crate::engine::{DecodeOptions, ImagePrompt};
 use crate::mesh::Format;
 
@@ -47,6 +47,11 @@ pub struct GenerateOptions {
     /// glb (default), obj, ply or stl.
     #[param(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
+    /// object: the object found, centred and scaled as in the image model's training renders,
+    /// its backdrop painted white; centre_crop: the largest centred square, as given
+    /// (default: the server's, see `/v1/info`).
+    #[param(value_type = Option<Framing>)]
+    pub framing: Option<String>,
 }
 
 /// How this server prepares images and samples when a request does not say.
@@ -144,7 +149,11 @@ impl ImageUpload {
         let seed = o.seed.unwrap_or(0);
         let decode =
             decode_options(o.max_faces, o.temperature, o.top_k, o.top_p, o.face_beam, seed)?;
-        let image = decode_image(&self.image, &defaults.decode).map_err(image_error)?;
+        let mut options = defaults.decode.clone();
+        if let Some(framing) = o.framing.as_deref() {
+            options.framing = framing.parse().map_err(ApiError::invalid)?;
+        }
+        let image = decode_image(&self.image, &options).map_err(image_error)?;
         let prompt = ImagePrompt {
             image,
             steps: o.steps.unwrap_or(defaults.steps),
@@ -251,6 +260,35 @@ mod tests {
         assert_eq!(read(FORM, with_query, form(&[("image", &image)])).unwrap_err().status, 422);
         let no_boundary = read("multipart/form-data", GenerateOptions::default(), Vec::new());
         assert_eq!(no_boundary.unwrap_err().status, 400);
+    }
+
+    #[test]
+    fn framing_is_the_servers_unless_the_request_says() {
+        // A dark square in the corner of a white landscape picture: framing it as an object
+        // centres it, the centre crop leaves it out.
+        let img = image::RgbImage::from_fn(60, 40, |x, y| {
+            image::Rgb(if x < 10 && y < 10 { [20, 20, 20] } else { [255, 255, 255] })
+        });
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+        let prepare = |framing: Option<&str>, defaults: &ImageDefaults| {
+            let query =
+                GenerateOptions { framing: framing.map(String::from), ..Default::default() };
+            read("image/png", query, bytes.get_ref().clone()).unwrap().parse(defaults)
+        };
+        let centre =
+            |d: &ImageDefaults, f| prepare(f, d).unwrap().prompt.image.pixels()[8 * 16 + 8];
+        let crop_server = ImageDefaults {
+            decode: ImageOptions { framing: Framing::CentreCrop, ..ImageOptions::new(16) },
+            ..defaults()
+        };
+        assert!(centre(&defaults(), None) < 0.2, "the object, centred");
+        assert_eq!(centre(&defaults(), Some("centre_crop")), 1.0);
+        assert_eq!(centre(&crop_server, None), 1.0);
+        assert!(centre(&crop_server, Some("object")) < 0.2);
+        let err = prepare(Some("tight"), &defaults()).unwrap_err();
+        assert_eq!(err.status, 422);
+        assert!(err.message.contains("\"object\" or \"centre_crop\""), "{}", err.message);
     }
 
     #[test]

@@ -32,7 +32,7 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
 
-use crate::diffusion::ImageOptions;
+use crate::diffusion::{Framing, ImageOptions};
 use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints, Stage};
 use crate::mesh::Mesh;
 use crate::model::DEFAULT_TEMPERATURE;
@@ -103,6 +103,8 @@ pub struct ImageServeConfig {
     pub steps: usize,
     /// Guidance scale when a request does not say.
     pub guidance: f32,
+    /// Framing when a request does not say.
+    pub framing: Framing,
     /// Largest width and height of an uploaded image, in pixels.
     pub max_side: u32,
 }
@@ -112,7 +114,7 @@ impl Default for ImageServeConfig {
     /// and the diffusion takes half the time of 50) and the guidance scale that gave the
     /// shipped model its lowest dev CD (docs/decisions.md, "Image requests").
     fn default() -> Self {
-        Self { steps: 25, guidance: 8.0, max_side: 4096 }
+        Self { steps: 25, guidance: 8.0, framing: Framing::Object, max_side: 4096 }
     }
 }
 
@@ -123,6 +125,7 @@ impl ImageServeConfig {
         let decode = ImageOptions {
             max_width: self.max_side,
             max_height: self.max_side,
+            framing: self.framing,
             ..ImageOptions::new(u32::try_from(size).ok()?)
         };
         Some(ImageDefaults { steps: self.steps, guidance: self.guidance, decode })
@@ -169,6 +172,7 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
             "config": d,
             "default_steps": cfg.image.steps,
             "default_guidance": cfg.image.guidance,
+            "default_framing": cfg.image.framing.name(),
             "max_image_side": cfg.image.max_side,
         })),
         "engine": engine.config(),

@@ -105,7 +105,8 @@ pub fn images_tensor(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::primitives::cuboid;
+    use crate::diffusion::framing::TRAINING_FILL;
+    use crate::mesh::primitives::{cuboid, frustum, torus};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
@@ -127,6 +128,41 @@ mod tests {
             let centre = (16 * 32 + 16) * 3;
             assert_ne!(&img[centre..centre + 3], &cfg.background);
         }
+    }
+
+    /// Pictures are framed into [`TRAINING_FILL`], the middle of the shares of the frame objects
+    /// span as the training camera renders them: a change of the camera must move it too.
+    #[test]
+    fn the_training_camera_frames_objects_as_the_framing_assumes() {
+        let cfg = ViewConfig::new(128);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut fills = Vec::new();
+        for i in 0..24 {
+            let size = [0.3 + 0.1 * (i % 7) as f32, 0.4 + 0.08 * (i % 5) as f32, 1.0];
+            let shape = match i % 3 {
+                0 => cuboid(size),
+                1 => frustum(size[0], size[1], 1.0, 12),
+                _ => torus(1.0, size[0] * 0.5, 16, 8),
+            };
+            let (mesh, _) = shape.normalized().unwrap();
+            let img = render_rgb(&mesh, &cfg.random(&mut rng)).unwrap();
+            // The longer side of the box of the covered pixels, as a share of the side.
+            let covered: Vec<(usize, usize)> = (0..128 * 128)
+                .filter(|i| img[3 * i..3 * i + 3] != cfg.background)
+                .map(|i| (i % 128, i / 128))
+                .collect();
+            let extent = |axis: fn(&(usize, usize)) -> usize| {
+                let (lo, hi) = covered
+                    .iter()
+                    .map(axis)
+                    .fold((usize::MAX, 0), |(lo, hi), v| (lo.min(v), hi.max(v)));
+                hi + 1 - lo
+            };
+            fills.push(extent(|p| p.0).max(extent(|p| p.1)) as f32 / 128.0);
+        }
+        fills.sort_by(f32::total_cmp);
+        let median = fills[fills.len() / 2];
+        assert!(TRAINING_FILL.contains(&median), "median fill {median}: {fills:?}");
     }
 
     #[test]
