@@ -56,9 +56,9 @@ impl std::fmt::Display for Framing {
 }
 
 /// Share of the frame the longer side of the object's box spans in the image model's training
-/// renders: their 5th to 95th percentile (median 0.58) over 150 training meshes seen from the
-/// training views' camera (docs/decisions.md, "Pictures are framed like the training
-/// renders"); a test checks it against `ViewConfig`.
+/// renders: the middle half of their shares (median 0.58, 5th to 95th percentile 0.43-0.74)
+/// over 150 training meshes seen from the training views' camera (docs/decisions.md, "Pictures
+/// are framed like the training renders"); a test checks it against `ViewConfig`.
 pub const TRAINING_FILL: RangeInclusive<f32> = 0.53..=0.62;
 
 /// A pixel whose channels are all within this of the backdrop's (of 255) is backdrop. JPEG
