@@ -20,20 +20,27 @@ cargo build --release --quiet --bin meshstream
 
 # sqrt(3) / sin(20 degrees): the distance at which the normalized cube fits a 40-degree view.
 distance=5.0642
+view=(--views 1 --size 256 --azimuth 30 --elevation 20 --fov 40 --distance "$distance")
 mkdir -p "$out/gt" "$out/views" "$out/pred"
-# VARIANT=tight|offcentre|offjpeg|greybg in the environment generates from the views reframed as
-# users take pictures (scripts/picture-variants.py, run with Pillow and NumPy in a venv under
-# target/), written to OUT/VARIANT.
+# VARIANT=tight|offcentre|offjpeg|greybg|colour in the environment generates from the views
+# reframed or recoloured as users take pictures (scripts/picture-variants.py, run with Pillow
+# and NumPy in a venv under target/), written to OUT/VARIANT; VARIANT=parts from views with a
+# colour for each part (`render --color-parts`), as multi-coloured objects are.
 # EVERY=N in the environment takes every N-th dev mesh (the first, the N+1-th, ...): a quicker check.
 awk -F, 'NR > 1 && $8 == "dev" { print $1 }' "$data/lowpoly/manifest.csv" | awk -v n="${EVERY:-1}" 'NR % n == 1 % n' \
   | while read -r f; do
   name=$(basename "$f" .ply)
   [ -f "$out/gt/$name.ply" ] || "$bin" convert "$data/lowpoly/$f" "$out/gt/$name.ply" --normalize 2>/dev/null
   [ -f "$out/views/$name.png" ] || "$bin" render "$data/lowpoly/$f" -o "$out/views/$name.png" \
-    --views 1 --size 256 --azimuth 30 --elevation 20 --fov 40 --distance "$distance" 2>/dev/null
+    "${view[@]}" 2>/dev/null
+  if [ "${VARIANT:-}" = parts ]; then
+    mkdir -p "$out/parts"
+    [ -f "$out/parts/$name.png" ] || "$bin" render "$data/lowpoly/$f" -o "$out/parts/$name.png" \
+      "${view[@]}" --color-parts 2>/dev/null
+  fi
   echo "$name"
 done > "$out/names.txt"
-if [ -n "${VARIANT:-}" ]; then
+if [ -n "${VARIANT:-}" ] && [ "$VARIANT" != parts ]; then
   venv="${CARGO_TARGET_DIR:-target}/picture-venv"
   [ -x "$venv/bin/python" ] || { python3 -m venv "$venv" && "$venv/bin/pip" install --quiet pillow numpy; }
   "$venv/bin/python" scripts/picture-variants.py "$VARIANT" "$out/views" "$out/$VARIANT"

@@ -5,8 +5,11 @@ Usage: picture-variants.py VARIANT SRC_DIR OUT_DIR, where SRC_DIR holds the squa
   tight      a product shot cropped to the object with a 4% margin, 512 x 512;
   offcentre  the object at a random place on a 640 x 480 white landscape picture;
   offjpeg    the same as a JPEG of quality 80;
-  greybg     the render with its background a light studio grey.
-The places are drawn from one seed in name order, so a variant is the same on every run.
+  greybg     the render with its background a light studio grey;
+  colour     the object in a colour of its own (red, navy, near-black, wood, yellow, green),
+             as the renderer would have shaded it: the training renders are all light grey.
+The places and colours are drawn from seeds of their own in name order, so a variant is the
+same on every run.
 """
 
 import io
@@ -16,7 +19,12 @@ import sys
 import numpy as np
 from PIL import Image
 
-VARIANTS = ("tight", "offcentre", "offjpeg", "greybg")
+VARIANTS = ("tight", "offcentre", "offjpeg", "greybg", "colour")
+# The renderer's base colour (render::Coloring's default), which shading scales per pixel.
+RENDER_BASE = np.array([200, 200, 210])
+COLOURS = np.array(
+    [(170, 35, 35), (35, 45, 95), (45, 45, 48), (125, 85, 50), (225, 185, 45), (45, 115, 60)]
+)
 
 
 def main(variant: str, src: str, out: str) -> None:
@@ -24,6 +32,7 @@ def main(variant: str, src: str, out: str) -> None:
         sys.exit(f"variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
     os.makedirs(out, exist_ok=True)
     rng = np.random.default_rng(7)
+    colour_rng = np.random.default_rng(11)
     for file in sorted(f for f in os.listdir(src) if f.endswith(".png")):
         name = file[:-4]
         image = Image.open(os.path.join(src, file)).convert("RGB")
@@ -53,6 +62,11 @@ def main(variant: str, src: str, out: str) -> None:
                 canvas.save(buffer, "JPEG", quality=80)
                 with open(os.path.join(out, name + ".jpg"), "wb") as f:
                     f.write(buffer.getvalue())
+        elif variant == "colour":
+            colour = COLOURS[colour_rng.integers(len(COLOURS))]
+            recoloured = pixels.copy()
+            recoloured[mask] = np.clip(np.rint(pixels[mask] * colour / RENDER_BASE), 0, 255)
+            Image.fromarray(recoloured.astype(np.uint8)).save(os.path.join(out, name + ".png"))
         else:
             grey = pixels.copy()
             grey[~mask] = (222, 224, 230)

@@ -9,7 +9,7 @@ const $ = (id) => document.getElementById(id);
 const view = new View($('canvas'));
 const OPTIONS = {
   points: ['max_faces', 'temperature', 'seed', 'candidates'],
-  image: ['max_faces', 'temperature', 'seed', 'steps', 'guidance'],
+  image: ['max_faces', 'temperature', 'seed', 'steps', 'guidance', 'framing'],
 };
 
 let input = null; // { file, kind, path, contentType, extension }
@@ -148,6 +148,7 @@ async function showServerInfo() {
     if (image) {
       set('steps', image.default_steps, info.engine.max_diffusion_steps);
       set('guidance', Number(image.default_guidance.toPrecision(6)));
+      $('framing-default').textContent = `the server's (${image.default_framing})`;
     }
     const mb = (limits.max_body_bytes / 2 ** 20).toFixed(0);
     $('server').textContent =

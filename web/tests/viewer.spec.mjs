@@ -211,9 +211,14 @@ try {
   await shoot('error');
 
   step('an image: diffusion progress, then faces');
+  const { image_model: imageModel } = await (await fetch(`${base}/v1/info`)).json();
+  assert.equal(await text('#framing-default'), `the server's (${imageModel.default_framing})`);
+  await page.select('#framing', 'centre_crop');
   await fill('#steps', '8');
   await fill('#max_faces', '200');
+  const generated = page.waitForResponse((r) => r.url().includes('/generate'));
   await page.click('[data-example="chest.png"]');
+  assert.equal(new URL((await generated).url()).searchParams.get('framing'), 'centre_crop');
   await page.waitForFunction(() => document.body.dataset.state !== 'running'
     && document.getElementById('input-name').textContent.startsWith('chest'));
   assert.equal(await state(), 'done', await text('#error'));
