@@ -10,6 +10,7 @@ use common::Server;
 use futures_util::StreamExt;
 use meshstream::diffusion::{DiffusionModel, DitConfig, checkpoint};
 use meshstream::mesh::{Format, ReadLimits, read_mesh};
+use meshstream::model::{FaceConfig, FaceModel};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{GenerateOptions, GenerateRequest, reconstruct_response};
 use serde_json::Value;
@@ -22,6 +23,23 @@ fn random_image_model(dir: &Path) {
     let vb = meshstream::model::seeded_var_builder(&varmap, 0, &candle_core::Device::Cpu);
     DiffusionModel::new(&cfg, vb, None).unwrap();
     checkpoint::save(dir, &cfg, &varmap).unwrap();
+}
+
+/// A `tiny` face model (random weights) whose first coordinate always says end of mesh: every
+/// mesh it decodes is empty.
+fn model_that_ends_at_once(dir: &Path) {
+    let cfg = FaceConfig::tiny();
+    let varmap = candle_nn::VarMap::new();
+    let vb = meshstream::model::seeded_var_builder(&varmap, 0, &candle_core::Device::Cpu);
+    FaceModel::new(&cfg, vb).unwrap();
+    {
+        let vars = varmap.data().lock().unwrap();
+        let bias = &vars["head.sub.0.fc2.bias"];
+        let mut values = bias.to_vec1::<f32>().unwrap();
+        values[cfg.quant_levels] = 1e4;
+        bias.set(&candle_core::Tensor::new(values, &candle_core::Device::Cpu).unwrap()).unwrap();
+    }
+    meshstream::model::checkpoint::save(dir, &cfg, &varmap).unwrap();
 }
 
 fn image_server(dir: &tempfile::TempDir) -> Server {
@@ -150,6 +168,38 @@ async fn a_png_becomes_a_mesh_and_streams_progress_then_faces() {
     assert!(api["paths"]["/generate"]["post"].is_object(), "{}", api["paths"]);
     let parameters = api["paths"]["/generate"]["post"]["parameters"].as_array().unwrap();
     assert!(parameters.iter().any(|p| p["name"] == "framing"), "{parameters:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_empty_mesh_is_sampled_again_then_answered_as_no_faces() {
+    let (faces, images) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    model_that_ends_at_once(faces.path());
+    random_image_model(images.path());
+    let model = faces.path().to_str().unwrap();
+    let image_model = images.path().to_str().unwrap();
+    let server =
+        Server::start_with_model(model, &["--image-model", image_model, "--image-attempts", "2"]);
+    let client = reqwest::Client::new();
+    let url = |format: &str| server.url(&format!("/generate?steps=2&format={format}"));
+    // A whole mesh: no format holds an empty one usefully (glTF cannot), so a 422 that says so.
+    for format in ["glb", "obj", "ply", "stl"] {
+        let r = client.post(url(format)).header("content-type", "image/png").body(png(32, 32));
+        let r = r.send().await.unwrap();
+        assert_eq!(r.status(), 422, "{format}");
+        let body: Value = r.json().await.unwrap();
+        assert_eq!(body["error"]["code"], "no_faces", "{format}: {body}");
+        assert!(body["error"]["message"].as_str().unwrap().contains("no faces"), "{body}");
+    }
+    // A stream shows both attempts' diffusion, then a done event with no faces.
+    let sse = client.post(url("glb")).header("accept", "text/event-stream").body(png(32, 32));
+    let events = events(sse.send().await.unwrap(), true).await;
+    let steps: Vec<u64> = events.iter().filter_map(|e| e.get("step")?.as_u64()).collect();
+    assert_eq!(steps, [1, 2, 1, 2], "{events:?}");
+    let done = events.last().unwrap();
+    assert_eq!(
+        (done["faces"].as_u64(), done["finish_reason"].as_str()),
+        (Some(0), Some("end_of_mesh"))
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -12,7 +12,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use meshstream::candidates::{Ending, best_of, candidate_options};
 use meshstream::mesh::{Format, Mesh, Normalization, write_mesh_file};
 use meshstream::model::{
-    DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, GenerateOptions, SamplingParams, generate,
+    DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, FinishReason, GenerateOptions,
+    SamplingParams, generate,
 };
 use meshstream::tokenize::{Quantizer, detokenize};
 
@@ -57,20 +58,17 @@ pub struct FromPoints<'a> {
     pub ending: Ending,
 }
 
-/// Decodes `latents` (each (K, latent_dim)) into faces, takes them to the caller's frame with
-/// `normalization`, and writes the mesh; `seed` drives sampling when the temperature is not 0.
-/// A reconstruction has a set of latents per draw of its input points, candidate `i` decoding
-/// from the `i`-th (cycling), and writes the candidate that ends closest to its points; a
-/// generation decodes the first. Reports what it wrote, timed from `start`.
-pub fn decode_to_file(
+/// Decodes `latents` (each (K, latent_dim)) into faces, in the model's frame; `seed` drives
+/// sampling when the temperature is not 0. A reconstruction has a set of latents per draw of
+/// its input points, candidate `i` decoding from the `i`-th (cycling), and keeps the candidate
+/// that ends closest to its points; a generation decodes the first. The mesh may be empty.
+pub fn decode(
     model: &FaceModel,
     latents: &[Tensor],
     args: &DecodeArgs,
     from_points: Option<FromPoints>,
     seed: u64,
-    normalization: Normalization,
-    start: Instant,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<(Mesh, FinishReason)> {
     let cfg = model.config();
     let options = GenerateOptions {
         sampling: SamplingParams {
@@ -86,7 +84,7 @@ pub fn decode_to_file(
     let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quantization levels")?)?;
     let bar =
         progress(ProgressBar::new_spinner(), "{spinner} {pos} faces decoded ({per_sec}) {elapsed}");
-    let (mesh, reason) = match from_points {
+    let decoded = match from_points {
         Some(p) => {
             let options = candidate_options(&options, p.candidates);
             let (best, mesh) =
@@ -103,6 +101,17 @@ pub fn decode_to_file(
         }
     };
     bar.finish_and_clear();
+    Ok(decoded)
+}
+
+/// Writes a decoded mesh (not empty) in the caller's frame, `normalization` inverted, and
+/// reports what it wrote, timed from `start`.
+pub fn write_decoded(
+    (mesh, reason): (Mesh, FinishReason),
+    args: &DecodeArgs,
+    normalization: Normalization,
+    start: Instant,
+) -> anyhow::Result<()> {
     anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
     // A reconstruction's ending drops faces but keeps their vertices in order.
     let mesh = normalization.invert_mesh(&mesh.without_unused_vertices());

@@ -5,13 +5,14 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::ProgressBar;
 use meshstream::diffusion::{Framing, ImageOptions, decode_image, images_to_tensor};
+use meshstream::engine::EngineConfig;
 use meshstream::mesh::Normalization;
 use meshstream::model::{checkpoint, parse_device};
 use meshstream::server::ImageServeConfig;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::decode::{DecodeArgs, decode_to_file, progress};
+use super::decode::{DecodeArgs, decode, progress, write_decoded};
 use super::{image_model_dir, load_image_model};
 
 #[derive(Args)]
@@ -42,6 +43,10 @@ pub struct GenerateArgs {
     /// Seed of the diffusion noise, and of the decoding when it samples.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Samples to take: one whose mesh comes out empty is drawn again from the next seed, up
+    /// to this many in all.
+    #[arg(long, default_value_t = EngineConfig::default().image_attempts as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    attempts: u64,
     /// cpu or cuda:N (with --features cuda).
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -65,26 +70,28 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
             .with_context(|| format!("decoding {}", args.image.display()))?;
     let start = Instant::now();
     let images = images_to_tensor(&[image], &device)?;
-    let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
-    let mut run = diffusion.start(&images, vec![args.guidance], args.steps, &mut rng)?;
-    let bar = progress(
-        ProgressBar::new(args.steps as u64),
-        "diffusion {bar:30} step {pos}/{len} ({per_sec}) {elapsed}",
-    );
-    while !run.is_done() {
-        diffusion.step(&mut run)?;
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    let latents = diffusion.latents(&run)?;
-    let frame = Normalization::identity();
-    decode_to_file(
-        &model,
-        std::slice::from_ref(&latents),
-        &args.decode,
-        None,
-        args.seed,
-        frame,
-        start,
-    )
+    // As the server does: a sample whose mesh comes out empty is drawn again from the next
+    // seed (`EngineConfig::image_attempts`).
+    let mut attempt = 0;
+    let decoded = loop {
+        let mut rng = ChaCha8Rng::seed_from_u64(args.seed.wrapping_add(attempt));
+        let mut run = diffusion.start(&images, vec![args.guidance], args.steps, &mut rng)?;
+        let bar = progress(
+            ProgressBar::new(args.steps as u64),
+            "diffusion {bar:30} step {pos}/{len} ({per_sec}) {elapsed}",
+        );
+        while !run.is_done() {
+            diffusion.step(&mut run)?;
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        let latents = diffusion.latents(&run)?;
+        let decoded = decode(&model, &[latents], &args.decode, None, args.seed)?;
+        attempt += 1;
+        if !decoded.0.faces.is_empty() || attempt >= args.attempts {
+            break decoded;
+        }
+        eprintln!("no faces from seed {}: sampling again", args.seed.wrapping_add(attempt - 1));
+    };
+    write_decoded(decoded, &args.decode, Normalization::identity(), start)
 }

@@ -7,7 +7,7 @@ use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MA
 use meshstream::mesh::{FitOptions, REFERENCE_POINTS, input_clouds};
 use meshstream::model::{Quantize, parse_device};
 
-use super::decode::{DecodeArgs, FromPoints, decode_to_file};
+use super::decode::{DecodeArgs, FromPoints, decode, write_decoded};
 use super::{candidate_count, load_face_model, normalized_input, point_count};
 
 #[derive(Args)]
@@ -95,13 +95,6 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     };
     let ending = Ending { weld_radius: args.weld_radius, fit: (fit.rounds > 0).then_some(fit) };
     let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
-    decode_to_file(
-        &model,
-        &latents,
-        &args.decode,
-        Some(from_points),
-        args.seed,
-        normalization,
-        start,
-    )
+    let decoded = decode(&model, &latents, &args.decode, Some(from_points), args.seed)?;
+    write_decoded(decoded, &args.decode, normalization, start)
 }

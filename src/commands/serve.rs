@@ -133,6 +133,10 @@ pub struct ServeArgs {
     /// Most Euler steps an image request may ask for.
     #[arg(long, env = "MESHSTREAM_MAX_DIFFUSION_STEPS", default_value_t = EngineConfig::default().max_diffusion_steps)]
     max_diffusion_steps: usize,
+    /// Samples an image request may take: one whose mesh comes out empty is sampled again from
+    /// the next seed, up to this many times in all (1: never).
+    #[arg(long, env = "MESHSTREAM_IMAGE_ATTEMPTS", default_value_t = EngineConfig::default().image_attempts)]
+    image_attempts: usize,
     /// Guidance scale of an image request that does not say.
     #[arg(long, env = "MESHSTREAM_GUIDANCE", default_value_t = ImageServeConfig::default().guidance)]
     guidance: f32,
@@ -208,6 +212,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         stream_idle_timeout: seconds("stream-idle-timeout", args.stream_idle_timeout)?,
         decode_threads: args.decode_threads,
         max_diffusion_steps: args.max_diffusion_steps,
+        image_attempts: args.image_attempts,
     };
     let engine = Engine::start(model, image_model, config, Arc::new(Metrics::default()))?;
     let serve_config = ServeConfig {

@@ -39,6 +39,9 @@ pub struct EngineConfig {
     /// Euler steps an image request may ask for: each costs one or two forward passes of
     /// the diffusion model over its batch.
     pub max_diffusion_steps: usize,
+    /// Samples an image request may take: one whose mesh comes out empty is sampled again
+    /// from the next seed, up to this many times in all (1: never).
+    pub image_attempts: usize,
 }
 
 impl Default for EngineConfig {
@@ -55,6 +58,7 @@ impl Default for EngineConfig {
             stream_idle_timeout: Duration::from_secs(30),
             decode_threads: 0,
             max_diffusion_steps: 250,
+            image_attempts: 3,
         }
     }
 }
@@ -68,6 +72,7 @@ impl EngineConfig {
             ("max_batch_faces", self.max_batch_faces),
             ("max_encodes_per_iteration", self.max_encodes_per_iteration),
             ("max_diffusion_steps", self.max_diffusion_steps),
+            ("image_attempts", self.image_attempts),
         ];
         if let Some((name, _)) = positive.iter().find(|(_, v)| *v == 0) {
             return Err(EngineError::InvalidInput(format!("{name} must be at least 1")));

@@ -22,6 +22,7 @@ mod memory;
 mod metrics;
 mod pools;
 mod request;
+mod resample;
 mod scheduler;
 mod stream;
 
@@ -139,12 +140,18 @@ impl Engine {
 
     /// Queues a request; its faces arrive on the returned stream. Refused at once when the
     /// queue is full or the engine is shutting down. A request for several candidates, or
-    /// welded or fitted, queues one request per candidate and needs a tokio runtime (see
-    /// `best_of`).
+    /// welded or fitted, queues one request per candidate, and an image request may be sampled
+    /// again: both need a tokio runtime (see `best_of` and `resample`).
     pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
         let options = &request.options;
         let ended = options.fit_rounds.unwrap_or(0) > 0 || options.weld_radius.unwrap_or(0) > 0;
+        let image = matches!(request.conditioning, Conditioning::Image(_));
+        let attempts = self.shared.config.image_attempts;
         match (options.candidates.unwrap_or(1), ended) {
+            (1, false) if image && attempts > 1 => {
+                self.check(&request).inspect_err(|e| self.shared.metrics.reject(e.code()))?;
+                resample::submit(self, request, attempts)
+            }
             (1, false) => self.submit_one(request),
             (n, _) => {
                 self.check(&request).inspect_err(|e| self.shared.metrics.reject(e.code()))?;

@@ -348,6 +348,28 @@ fn the_deadline_ends_a_request_with_an_error() {
 fn image_engine(config: EngineConfig) -> (Engine, FaceModel, crate::diffusion::DiffusionModel) {
     let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
     let (_, model) = random_model(&cfg);
+    image_engine_with(model, config)
+}
+
+/// A model whose first coordinate always says end of mesh: every mesh comes out empty.
+fn model_that_ends_at_once() -> FaceModel {
+    let cfg = FaceConfig { quant_levels: 128, ..FaceConfig::micro() };
+    let (varmap, _) = random_model(&cfg);
+    {
+        let vars = varmap.data().lock().unwrap();
+        let bias = &vars["head.sub.0.fc2.bias"];
+        let mut values = bias.to_vec1::<f32>().unwrap();
+        values[cfg.quant_levels] = 1e4;
+        bias.set(&candle_core::Tensor::new(values, &candle_core::Device::Cpu).unwrap()).unwrap();
+    }
+    crate::model::checkpoint::inference_model(&cfg, &varmap, &candle_core::Device::Cpu).unwrap()
+}
+
+fn image_engine_with(
+    model: FaceModel,
+    config: EngineConfig,
+) -> (Engine, FaceModel, crate::diffusion::DiffusionModel) {
+    let cfg = model.config().clone();
     let dit_cfg = crate::diffusion::DitConfig {
         num_latents: cfg.num_latents,
         latent_dim: cfg.latent_dim,
@@ -418,9 +440,11 @@ fn image_requests_report_progress_then_decode_as_alone_next_to_point_requests() 
         images.iter().map(|r| reference_image_faces(&model, &dit, r, 15)).collect();
     let points = request(&model, 5, 10);
     let points_expected = reference_faces(&model, &points, 10);
-    let mut streams: Vec<_> = images.into_iter().map(|r| engine.submit(r).unwrap()).collect();
-    let points_stream = engine.submit(points).unwrap();
     let results = runtime().block_on(async {
+        // Submitted in the runtime: an image request that came out empty would be sampled
+        // again (`EngineConfig::image_attempts`), by a task of its own.
+        let mut streams: Vec<_> = images.into_iter().map(|r| engine.submit(r).unwrap()).collect();
+        let points_stream = engine.submit(points).unwrap();
         let mut out = Vec::new();
         for s in &mut streams {
             let mut progress = Vec::new();
@@ -493,6 +517,10 @@ fn image_requests_are_checked_and_refused_without_an_image_model() {
 fn a_cancelled_image_request_leaves_the_diffusion_batch() {
     let (engine, _, _) =
         image_engine(EngineConfig { max_diffusion_steps: 100_000, ..EngineConfig::default() });
+    // A worker thread forwards the request's events while this thread waits.
+    let runtime =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+    let _inside = runtime.enter();
     let stream = engine.submit(image_request(1, 100_000, 2.0, 5)).unwrap();
     let t0 = Instant::now();
     while engine.status().running == 0 {
@@ -505,4 +533,41 @@ fn a_cancelled_image_request_leaves_the_diffusion_batch() {
         std::thread::sleep(Duration::from_millis(5));
     }
     assert!(engine.metrics().render().contains("requests_finished_total{reason=\"cancelled\"} 1"));
+}
+
+#[test]
+fn an_image_request_whose_mesh_comes_out_empty_is_sampled_again_from_the_next_seeds() {
+    let events_of = |attempts: usize| {
+        let (engine, _, _) = image_engine_with(
+            model_that_ends_at_once(),
+            EngineConfig { image_attempts: attempts, ..EngineConfig::default() },
+        );
+        runtime().block_on(async {
+            let mut stream = engine.submit(image_request(0, 2, 1.0, 5)).unwrap();
+            let mut progress = Vec::new();
+            loop {
+                match stream.next().await.unwrap() {
+                    Event::Progress { step, .. } => progress.push(step),
+                    Event::Face(f) => panic!("a face from a model that ends at once: {f:?}"),
+                    Event::Finished(summary) => return (progress, summary),
+                    Event::Failed(e) => panic!("{e}"),
+                }
+            }
+        })
+    };
+    // Every attempt is sampled in full (its progress shown again), then the empty answer.
+    let (progress, summary) = events_of(3);
+    assert_eq!(progress, [1, 2, 1, 2, 1, 2]);
+    assert_eq!((summary.faces, summary.finish), (0, crate::model::FinishReason::EndOfMesh));
+    assert!(summary.total >= summary.decode && summary.queued <= summary.total);
+    assert_eq!(events_of(1).0, [1, 2], "one attempt: never sampled again");
+}
+
+#[test]
+fn further_attempts_start_from_the_next_seeds() {
+    let request = image_request(4, 2, 1.0, 5);
+    let next = resample::next_attempt(&request, 2);
+    assert_eq!(next.id, "img4/attempt-2");
+    let Conditioning::Image(prompt) = next.conditioning else { unreachable!() };
+    assert_eq!(prompt.seed, 6);
 }

@@ -156,7 +156,7 @@ pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
             headers(("www-authenticate" = String, description = "Bearer"))),
         (status = 408, description = "The body did not arrive within the body read timeout", body = ErrorBody),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
-        (status = 422, description = "Invalid points or options", body = ErrorBody),
+        (status = 422, description = "Invalid points or options, or a whole mesh with no faces (`no_faces`)", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
         (status = 503, description = "Shutting down, or waited too long in the queue", body = ErrorBody),
     )
@@ -223,7 +223,7 @@ async fn reconstruct(
             headers(("www-authenticate" = String, description = "Bearer"))),
         (status = 408, description = "The body did not arrive within the body read timeout", body = ErrorBody),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
-        (status = 422, description = "Invalid options", body = ErrorBody),
+        (status = 422, description = "Invalid options, or a whole mesh with no faces (`no_faces`)", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
         (status = 501, description = "This server has no image model", body = ErrorBody),
         (status = 503, description = "Shutting down, or waited too long in the queue", body = ErrorBody),
@@ -425,6 +425,18 @@ async fn mesh_response(
     id: String,
 ) -> Result<Response, ApiError> {
     let done = stream.collect().await?;
+    if done.mesh.faces.is_empty() {
+        // Not every format can hold an empty mesh (glTF refuses empty accessors); none is a
+        // useful answer. Streams report it in their done event instead.
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "no_faces",
+            format!(
+                "the model produced no faces for this input ({}); another seed may",
+                done.summary.finish.name()
+            ),
+        ));
+    }
     let bytes = write_mesh(&done.mesh, format).map_err(|e| {
         ApiError::internal(format!(
             "the result ({} faces, {}) cannot be written: {e}",
