@@ -1,5 +1,7 @@
 //! The `meshstream` binary end to end: stats, convert, sample and eval on real files.
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -281,6 +283,33 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("another encoder") && err.contains("meshstream-train dit"), "{err}");
+}
+
+#[test]
+fn generate_samples_again_while_the_mesh_comes_out_empty_then_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let (model, image_model) = (dir.path().join("model"), dir.path().join("dit"));
+    common::models::model_that_ends_at_once(&model);
+    common::models::random_image_model(&image_model);
+    let picture = dir.path().join("cube.png");
+    let cube = dir.path().join("cube.obj");
+    write_mesh_file(&cuboid([1.0, 1.0, 1.0]), &cube, None).unwrap();
+    let o = meshstream(&["render", path(&cube), "-o", path(&picture), "--views", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("out.glb");
+    let args = ["generate", path(&picture), "-o", path(&out), "--model", path(&model)];
+    let args = [&args[..], &["--image-model", path(&image_model), "--steps", "2"]].concat();
+    let o = meshstream(&[&args[..], &["--attempts", "3"]].concat());
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no faces from seed 0: sampling again"), "{err}");
+    assert!(err.contains("no faces from seed 1: sampling again"), "{err}");
+    assert!(!err.contains("seed 2: sampling again"), "three samples in all: {err}");
+    assert!(err.contains("the model produced no faces") && !err.contains("panicked"), "{err}");
+    assert!(!out.exists(), "nothing written");
+    let o = meshstream(&[&args[..], &["--attempts", "0"]].concat());
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--attempts"));
 }
 
 #[test]

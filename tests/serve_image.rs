@@ -7,40 +7,13 @@ mod common;
 use std::path::Path;
 
 use common::Server;
+use common::models::{model_that_ends_at_once, random_image_model};
 use futures_util::StreamExt;
-use meshstream::diffusion::{DiffusionModel, DitConfig, checkpoint};
 use meshstream::mesh::{Format, ReadLimits, read_mesh};
-use meshstream::model::{FaceConfig, FaceModel};
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{GenerateOptions, GenerateRequest, reconstruct_response};
 use serde_json::Value;
 use tonic::Code;
-
-/// A `tiny` image model with random weights (the same on every run), saved like a trained one.
-fn random_image_model(dir: &Path) {
-    let cfg = DitConfig::tiny();
-    let varmap = candle_nn::VarMap::new();
-    let vb = meshstream::model::seeded_var_builder(&varmap, 0, &candle_core::Device::Cpu);
-    DiffusionModel::new(&cfg, vb, None).unwrap();
-    checkpoint::save(dir, &cfg, &varmap).unwrap();
-}
-
-/// A `tiny` face model (random weights) whose first coordinate always says end of mesh: every
-/// mesh it decodes is empty.
-fn model_that_ends_at_once(dir: &Path) {
-    let cfg = FaceConfig::tiny();
-    let varmap = candle_nn::VarMap::new();
-    let vb = meshstream::model::seeded_var_builder(&varmap, 0, &candle_core::Device::Cpu);
-    FaceModel::new(&cfg, vb).unwrap();
-    {
-        let vars = varmap.data().lock().unwrap();
-        let bias = &vars["head.sub.0.fc2.bias"];
-        let mut values = bias.to_vec1::<f32>().unwrap();
-        values[cfg.quant_levels] = 1e4;
-        bias.set(&candle_core::Tensor::new(values, &candle_core::Device::Cpu).unwrap()).unwrap();
-    }
-    meshstream::model::checkpoint::save(dir, &cfg, &varmap).unwrap();
-}
 
 fn image_server(dir: &tempfile::TempDir) -> Server {
     random_image_model(dir.path());

@@ -2,6 +2,8 @@
 
 #![allow(dead_code)] // each test binary uses part of it
 
+pub mod models;
+
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
