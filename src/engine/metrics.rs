@@ -60,6 +60,8 @@ pub struct Metrics {
     rows_stepped: AtomicU64,
     pub diffusion_steps: Counter,
     pub diffusion_batch_size: Histogram,
+    /// Image requests sampled again, their mesh having come out empty (`engine::resample`).
+    pub image_resamples: Counter,
     rejections: ByReason,
     failures: ByReason,
     finished: ByReason,
@@ -81,6 +83,7 @@ impl Default for Metrics {
             rows_stepped: AtomicU64::new(0),
             diffusion_steps: Counter::default(),
             diffusion_batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            image_resamples: Counter::default(),
             rejections: ByReason::default(),
             failures: ByReason::default(),
             finished: ByReason::default(),
@@ -123,6 +126,11 @@ impl Default for Metrics {
             "diffusion_batch_size",
             "Image requests stepped together in one diffusion step",
             m.diffusion_batch_size.clone(),
+        );
+        registry.register(
+            "image_resamples",
+            "Image requests sampled again from the next seed, their mesh having come out empty",
+            m.image_resamples.clone(),
         );
         registry.register(
             "requests_rejected",

@@ -51,7 +51,10 @@ pub(super) fn submit(
             let next = (last.faces == 0 && attempt < attempts)
                 .then(|| engine.submit_one(next_attempt(&request, attempt)));
             match next {
-                Some(Ok(next)) => stream = next,
+                Some(Ok(next)) => {
+                    engine.shared.metrics.image_resamples.inc();
+                    stream = next;
+                }
                 // No faces and no further attempt (or none accepted): the empty answer.
                 _ => {
                     let summary = as_requested(last, started, attempt_started);

@@ -542,7 +542,7 @@ fn an_image_request_whose_mesh_comes_out_empty_is_sampled_again_from_the_next_se
             model_that_ends_at_once(),
             EngineConfig { image_attempts: attempts, ..EngineConfig::default() },
         );
-        runtime().block_on(async {
+        let (progress, summary) = runtime().block_on(async {
             let mut stream = engine.submit(image_request(0, 2, 1.0, 5)).unwrap();
             let mut progress = Vec::new();
             loop {
@@ -553,14 +553,18 @@ fn an_image_request_whose_mesh_comes_out_empty_is_sampled_again_from_the_next_se
                     Event::Failed(e) => panic!("{e}"),
                 }
             }
-        })
+        });
+        (progress, summary, engine.metrics().render())
     };
     // Every attempt is sampled in full (its progress shown again), then the empty answer.
-    let (progress, summary) = events_of(3);
+    let (progress, summary, metrics) = events_of(3);
     assert_eq!(progress, [1, 2, 1, 2, 1, 2]);
     assert_eq!((summary.faces, summary.finish), (0, crate::model::FinishReason::EndOfMesh));
     assert!(summary.total >= summary.decode && summary.queued <= summary.total);
-    assert_eq!(events_of(1).0, [1, 2], "one attempt: never sampled again");
+    assert!(metrics.contains("meshstream_image_resamples_total 2"), "{metrics}");
+    let (progress, _, metrics) = events_of(1);
+    assert_eq!(progress, [1, 2], "one attempt: never sampled again");
+    assert!(metrics.contains("meshstream_image_resamples_total 0"), "{metrics}");
 }
 
 #[test]
