@@ -55,7 +55,7 @@ pub(super) fn submit(
                     engine.shared.metrics.image_resamples.inc();
                     stream = next;
                 }
-                // No faces and no further attempt (or none accepted): the empty answer.
+                // Faces, or none and no further attempt (or none accepted): the answer.
                 _ => {
                     let summary = as_requested(last, started, attempt_started);
                     let _ = tx.send(Event::Finished(summary)).await;
