@@ -101,6 +101,13 @@ async function run() {
       },
     });
     progress();
+    if (done.faces === 0) {
+      // What a whole mesh gets as a 422 (no_faces): said as plainly here.
+      $('progress').textContent = '';
+      showError(`The model produced no faces for this input (${done.finish_reason}); another seed may.`);
+      setState('error');
+      return;
+    }
     const total = (done.total_ms / 1000).toFixed(2);
     $('progress').textContent += `\nDone: ${done.faces} faces (${done.finish_reason}) in ${total} s on the server.`;
     setState('done');

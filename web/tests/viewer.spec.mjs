@@ -210,6 +210,19 @@ try {
   assert.equal(result.error_text, `400 ${error.code}: ${error.message}`);
   await shoot('error');
 
+  step('a stream with no faces says so');
+  // Three points: the shipped model ends the mesh before its first face.
+  await fill('#max_faces', '');
+  const header = 'ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n';
+  await writeFile(`${artifacts}/three-points.ply`, `${header}0 0 0\n1 0 0\n0 1 0\n`);
+  await fileInput.uploadFile(`${artifacts}/three-points.ply`);
+  // The page is still in the last step's error while it reads the file: wait for this one's.
+  await page.waitForFunction((previous) => document.body.dataset.state === 'error'
+    && document.getElementById('input-name').textContent.startsWith('three-points.ply')
+    && document.getElementById('error').textContent !== previous, {}, result.error_text);
+  result.no_faces_text = await text('#error');
+  assert.match(result.no_faces_text, /^The model produced no faces for this input/);
+
   step('an image: diffusion progress, then faces');
   const { image_model: imageModel } = await (await fetch(`${base}/v1/info`)).json();
   assert.equal(await text('#framing-default'), `the server's (${imageModel.default_framing})`);
