@@ -269,6 +269,13 @@ fn generate_turns_a_picture_into_a_mesh_with_the_shipped_models() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("decoding") && !err.contains("panicked"), "{err}");
+    // A blank picture: nothing to make a mesh of, and how to take it as it is anyway.
+    let blank = dir.path().join("blank.png");
+    image::RgbImage::from_pixel(300, 200, image::Rgb([255; 3])).save(&blank).unwrap();
+    let o = meshstream(&["generate", path(&blank), "-o", path(&out), "--model", model]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no object") && err.contains("framing centre_crop"), "{err}");
 
     // An image model trained for another encoder: refused, with what to do about it.
     let foreign = dir.path().join("foreign-dit");

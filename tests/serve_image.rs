@@ -29,6 +29,14 @@ fn png(width: u32, height: u32) -> Vec<u8> {
     out.into_inner()
 }
 
+/// A `width` x `height` PNG of one colour: nothing on it to make a mesh of.
+fn blank_png(width: u32, height: u32, colour: [u8; 4]) -> Vec<u8> {
+    let img = image::RgbaImage::from_pixel(width, height, image::Rgba(colour));
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
 /// A valid 1 x 1 PNG whose header claims `width` x `height` (its CRC patched to match).
 fn png_claiming(width: u32, height: u32) -> Vec<u8> {
     let mut png = png(1, 1);
@@ -197,6 +205,19 @@ async fn bad_images_and_options_get_4xx_and_the_server_survives() {
         let v: Value = r.json().await.unwrap();
         assert_eq!(v["error"]["code"], code, "{what}: {v}");
     }
+    // Pictures with nothing on them: refused as having no object, unless the client asks for
+    // the picture as it is.
+    for (what, colour) in [("white", [255, 255, 255, 255]), ("transparent", [9, 9, 9, 0])] {
+        let blank = blank_png(300, 200, colour);
+        let r = client.post(server.url("/generate")).body(blank.clone()).send().await.unwrap();
+        assert_eq!(r.status(), 422, "{what}");
+        let v: Value = r.json().await.unwrap();
+        assert_eq!(v["error"]["code"], "no_object", "{what}: {v}");
+        assert!(v["error"]["message"].as_str().unwrap().contains("centre_crop"), "{v}");
+        let as_given = "/generate?framing=centre_crop&steps=2&max_faces=5";
+        let r = client.post(server.url(as_given)).body(blank).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{what} as given");
+    }
     let image = png(32, 32);
     let cases = [
         ("/generate?steps=0", 422),
@@ -259,6 +280,9 @@ async fn grpc_streams_progress_then_faces_and_refuses_bad_images() {
         let status = grpc.generate_from_image(request(bad)).await.unwrap_err();
         assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
     }
+    let blank = grpc.generate_from_image(request(blank_png(40, 40, [255; 4]))).await.unwrap_err();
+    assert_eq!(blank.code(), Code::InvalidArgument, "{blank:?}");
+    assert!(blank.message().contains("no object"), "{blank:?}");
     let mut framed = request(png(40, 40));
     framed.options.as_mut().unwrap().framing = Some("tight".into());
     let status = grpc.generate_from_image(framed).await.unwrap_err();

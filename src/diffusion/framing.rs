@@ -9,7 +9,9 @@
 //! the picture's border), paints the backdrop the training background, centres the object's
 //! box, and scales it into the training range: a picture framed like the training renders
 //! keeps its scale. Where it cannot tell the object from its surroundings (a cluttered photo),
-//! it falls back to the largest centred square, which is all [`Framing::CentreCrop`] does.
+//! it falls back to the largest centred square, which is all [`Framing::CentreCrop`] does. A
+//! picture with nothing on its backdrop (one colour throughout, or all transparent) is refused
+//! with [`NoObject`]: a mesh made up from a blank picture would be noise.
 
 use std::ops::RangeInclusive;
 use std::str::FromStr;
@@ -69,17 +71,31 @@ const BACKDROP_TOLERANCE: u8 = 24;
 /// as a backdrop: an object may touch the border, a cluttered scene's border does not match.
 const UNIFORM_BORDER_SHARE: f32 = 0.9;
 
+/// Why [`Framing::Object`] found nothing to frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum NoObject {
+    #[error("no pixel of the picture is at least half opaque")]
+    Transparent,
+    #[error("the picture is one colour throughout (RGB {0:?}, give or take {BACKDROP_TOLERANCE})")]
+    Blank([u8; 3]),
+}
+
 /// `image` framed as `framing` says, alpha composited on `background`, resized to `size` x
 /// `size`.
-pub fn frame(image: &RgbaImage, size: u32, background: [u8; 3], framing: Framing) -> RgbImage {
+pub fn frame(
+    image: &RgbaImage,
+    size: u32,
+    background: [u8; 3],
+    framing: Framing,
+) -> Result<RgbImage, NoObject> {
     let object = match framing {
-        Framing::Object => find_object(image),
+        Framing::Object => find_object(image)?,
         Framing::CentreCrop => None,
     };
-    match object {
+    Ok(match object {
         Some(object) => centre_object(image, &object, size, background),
         None => centre_crop(image, size, background),
-    }
+    })
 }
 
 /// Where the object is: its box in pixels and, when the picture is opaque, the backdrop it
@@ -94,11 +110,16 @@ struct Object {
 }
 
 /// The object of a picture with transparency is its pixels at least half opaque; of an opaque
-/// one, its pixels off the backdrop. `None` when neither tells (no uniform backdrop) or the
-/// picture is empty.
-fn find_object(image: &RgbaImage) -> Option<Object> {
+/// one, its pixels off the backdrop. `None` when neither tells (no uniform backdrop).
+fn find_object(image: &RgbaImage) -> Result<Option<Object>, NoObject> {
     let transparent = image.pixels().any(|p| p[3] < u8::MAX);
-    let backdrop = if transparent { None } else { Some(uniform_border(image)?) };
+    let backdrop = if transparent {
+        None
+    } else {
+        // Without a uniform backdrop (a cluttered photo) the object cannot be told.
+        let Some(colour) = uniform_border(image) else { return Ok(None) };
+        Some(colour)
+    };
     let is_object = |p: &Rgba<u8>| match backdrop {
         None => p[3] >= 128,
         Some(colour) => !near(p, colour),
@@ -109,14 +130,11 @@ fn find_object(image: &RgbaImage) -> Option<Object> {
             (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
         }
     }
-    // Lazily: with no object pixel the box's corners are still crossed.
-    (x0 <= x1).then(|| Object {
-        left: x0,
-        top: y0,
-        width: x1 - x0 + 1,
-        height: y1 - y0 + 1,
-        backdrop,
-    })
+    if x0 > x1 {
+        // No object pixel: the box's corners are still crossed.
+        return Err(backdrop.map_or(NoObject::Transparent, NoObject::Blank));
+    }
+    Ok(Some(Object { left: x0, top: y0, width: x1 - x0 + 1, height: y1 - y0 + 1, backdrop }))
 }
 
 fn near(p: &Rgba<u8>, colour: [u8; 3]) -> bool {
@@ -240,7 +258,7 @@ mod tests {
             (200, 200, (10, 80, 180, 90), (most, most / 2)),
             (100, 100, (5, 5, 60, 60), (side(0.6), side(0.6))),
         ] {
-            let framed = frame(&picture(w, h, GREY, object), size, WHITE, Framing::Object);
+            let framed = frame(&picture(w, h, GREY, object), size, WHITE, Framing::Object).unwrap();
             let (left, top, got_width, got_height) = object_box(&framed, WHITE);
             assert!(got_width.abs_diff(width) <= 1 && got_height.abs_diff(height) <= 1);
             assert!(left.abs_diff((size - got_width) / 2) <= 1);
@@ -265,7 +283,7 @@ mod tests {
                 Rgba([(x * 2) as u8, (y * 4) as u8, 7, 0])
             }
         });
-        let framed = frame(&image, 40, WHITE, Framing::Object);
+        let framed = frame(&image, 40, WHITE, Framing::Object).unwrap();
         let (left, top, width, height) = object_box(&framed, WHITE);
         // 20 of the picture's 60 rows: brought up to the least training fill.
         let side = (40.0 * TRAINING_FILL.start()).round() as u32;
@@ -275,31 +293,55 @@ mod tests {
     }
 
     #[test]
-    fn without_a_backdrop_or_an_object_the_centre_square_is_taken() {
-        // A border of many colours (a cluttered photo), an empty backdrop, a fully
-        // transparent picture: nothing to find, so the framing is the centre crop's.
+    fn without_a_uniform_backdrop_the_centre_square_is_taken() {
+        // A border of many colours (a cluttered photo): the object cannot be told from its
+        // surroundings, so the framing is the centre crop's.
         let cluttered =
             RgbaImage::from_fn(90, 60, |x, y| Rgba([(x * 3) as u8, (y * 4) as u8, 90, 255]));
-        let empty = picture(80, 50, GREY, (0, 0, 0, 0));
-        let transparent = RgbaImage::from_pixel(30, 50, Rgba([10, 20, 30, 0]));
-        for image in [cluttered, empty, transparent] {
-            assert_eq!(
-                frame(&image, 16, WHITE, Framing::Object),
-                frame(&image, 16, WHITE, Framing::CentreCrop)
-            );
-        }
+        assert_eq!(
+            frame(&cluttered, 16, WHITE, Framing::Object),
+            frame(&cluttered, 16, WHITE, Framing::CentreCrop)
+        );
         let crop = frame(&picture(90, 60, GREY, (0, 0, 0, 0)), 8, WHITE, Framing::CentreCrop);
-        assert_eq!(crop.get_pixel(3, 3).0, GREY, "the centre crop keeps the backdrop as given");
+        assert_eq!(crop.unwrap().get_pixel(3, 3).0, GREY, "the centre crop keeps the backdrop");
+    }
+
+    #[test]
+    fn a_picture_with_nothing_on_its_backdrop_has_no_object() {
+        // An empty backdrop (JPEG-like noise within the tolerance included), a fully
+        // transparent picture, one whose pixels are all under half opaque: refused as an
+        // object, taken as they are by the centre crop.
+        let empty = picture(80, 50, GREY, (0, 0, 0, 0));
+        let noisy = RgbaImage::from_fn(80, 50, |x, y| {
+            let jitter = ((x * 7 + y * 13) % 21) as u8;
+            Rgba([GREY[0] - jitter, GREY[1] - jitter, GREY[2] - jitter, 255])
+        });
+        let transparent = RgbaImage::from_pixel(30, 50, Rgba([10, 20, 30, 0]));
+        let faint = RgbaImage::from_pixel(30, 50, Rgba([10, 20, 30, 127]));
+        for (image, expected) in [
+            (&empty, NoObject::Blank(GREY)),
+            (&transparent, NoObject::Transparent),
+            (&faint, NoObject::Transparent),
+        ] {
+            assert_eq!(frame(image, 16, WHITE, Framing::Object), Err(expected));
+            assert!(frame(image, 16, WHITE, Framing::CentreCrop).is_ok());
+        }
+        assert!(matches!(frame(&noisy, 16, WHITE, Framing::Object), Err(NoObject::Blank(_))));
+        let message = NoObject::Blank(GREY).to_string();
+        assert!(message.contains("one colour") && message.contains("222, 224, 230"), "{message}");
     }
 
     #[test]
     fn one_pixel_pictures_and_objects_are_framed_without_panicking() {
         for (w, h) in [(1, 1), (1, 7), (7, 1)] {
+            // One colour: nothing to find, but no panic either way.
             let image = RgbaImage::from_pixel(w, h, Rgba([9, 9, 9, 255]));
-            assert_eq!(frame(&image, 5, WHITE, Framing::Object).dimensions(), (5, 5));
+            assert_eq!(frame(&image, 5, WHITE, Framing::Object), Err(NoObject::Blank([9, 9, 9])));
+            let crop = frame(&image, 5, WHITE, Framing::CentreCrop).unwrap();
+            assert_eq!(crop.dimensions(), (5, 5));
         }
         let dot = picture(50, 50, GREY, (25, 25, 1, 1));
-        let framed = frame(&dot, 9, WHITE, Framing::Object);
+        let framed = frame(&dot, 9, WHITE, Framing::Object).unwrap();
         assert_eq!(framed.dimensions(), (9, 9));
         assert_ne!(framed.get_pixel(4, 4).0, WHITE, "one pixel is an object, scaled up");
     }

@@ -11,7 +11,7 @@ use std::io::Cursor;
 use candle_core::{Device, Tensor};
 use image::{DynamicImage, ImageError, ImageReader, Limits};
 
-use super::framing::{Framing, frame};
+use super::framing::{Framing, NoObject, frame};
 
 use crate::model::Result;
 
@@ -30,6 +30,8 @@ pub enum ImageInputError {
     TooMuchMemory { max_bytes: u64 },
     #[error("the image data is truncated or corrupt: {0}")]
     Malformed(String),
+    #[error("no object found in the picture: {0}; framing centre_crop takes the picture as it is")]
+    NoObject(NoObject),
 }
 
 /// How an image is turned into encoder input.
@@ -135,12 +137,13 @@ pub fn decode_image(bytes: &[u8], opts: &ImageOptions) -> Result<PreparedImage, 
         });
     }
     let image = reader(bytes, opts.limits())?.decode().map_err(|e| map_decode_error(e, opts))?;
-    Ok(prepare(&image, opts))
+    prepare(&image, opts)
 }
 
 /// Framing and the channel-major floats: the part after decoding.
-fn prepare(image: &DynamicImage, opts: &ImageOptions) -> PreparedImage {
-    let framed = frame(&image.to_rgba8(), opts.size, opts.background, opts.framing);
+fn prepare(image: &DynamicImage, opts: &ImageOptions) -> Result<PreparedImage, ImageInputError> {
+    let framed = frame(&image.to_rgba8(), opts.size, opts.background, opts.framing)
+        .map_err(ImageInputError::NoObject)?;
     let size = opts.size as usize;
     let mut pixels = vec![0f32; 3 * size * size];
     for (x, y, p) in framed.enumerate_pixels() {
@@ -148,7 +151,7 @@ fn prepare(image: &DynamicImage, opts: &ImageOptions) -> PreparedImage {
             pixels[(c * size + y as usize) * size + x as usize] = f32::from(p.0[c]) / 255.0;
         }
     }
-    PreparedImage { size, pixels }
+    Ok(PreparedImage { size, pixels })
 }
 
 /// Stacks images of one size into a (B, 3, size, size) tensor.
@@ -252,6 +255,12 @@ mod tests {
         );
 
         assert_eq!(decode_image(&png, &ImageOptions::new(0)), Err(ImageInputError::ZeroOutputSize));
+
+        // A blank picture is an image, but with nothing in it to frame.
+        let white = RgbImage::from_pixel(30, 20, Rgb([255, 255, 255]));
+        let blank = decode_image(&encode(&white.into(), ImageFormat::Png), &opts).unwrap_err();
+        assert_eq!(blank, ImageInputError::NoObject(NoObject::Blank([255, 255, 255])));
+        assert!(blank.to_string().contains("framing centre_crop"), "{blank}");
     }
 
     /// CRC-32 (ISO-HDLC, as PNG uses), so a patched header stays valid.
@@ -283,7 +292,8 @@ mod tests {
             png_claiming(1, 1).len(),
             encode(&DynamicImage::ImageRgb8(RgbImage::new(1, 1)), ImageFormat::Png).len()
         );
-        assert!(decode_image(&png_claiming(1, 1), &ImageOptions::new(4)).is_ok());
+        let as_given = ImageOptions { framing: Framing::CentreCrop, ..ImageOptions::new(4) };
+        assert!(decode_image(&png_claiming(1, 1), &as_given).is_ok());
         assert_eq!(
             decode_image(&png_claiming(100_000, 100_000), &ImageOptions::new(16)),
             Err(ImageInputError::TooLarge {

@@ -30,7 +30,7 @@ pub use config::{
 };
 pub use dit::{Dit, DitCondition};
 pub use flow::{Guidance, RowStep, VelocityField};
-pub use framing::Framing;
+pub use framing::{Framing, NoObject};
 pub use image::{ImageInputError, ImageOptions, PreparedImage, decode_image, images_to_tensor};
 pub use image_encoder::{Dinov2Encoder, ImageEncoder, PatchEncoder};
 pub use latent_model::{DiffusionModel, LatentSampling, latent_stats};

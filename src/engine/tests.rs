@@ -507,8 +507,11 @@ fn image_requests_are_checked_and_refused_without_an_image_model() {
             image::RgbImage::new(8, 8).write_to(&mut c, image::ImageFormat::Png).unwrap();
             c.into_inner()
         };
-        p.image =
-            crate::diffusion::decode_image(&png, &crate::diffusion::ImageOptions::new(8)).unwrap();
+        let as_given = crate::diffusion::ImageOptions {
+            framing: crate::diffusion::Framing::CentreCrop,
+            ..crate::diffusion::ImageOptions::new(8)
+        };
+        p.image = crate::diffusion::decode_image(&png, &as_given).unwrap();
     }
     assert!(matches!(engine.submit(wrong_size), Err(EngineError::InvalidInput(_))));
 }

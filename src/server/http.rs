@@ -223,7 +223,7 @@ async fn reconstruct(
             headers(("www-authenticate" = String, description = "Bearer"))),
         (status = 408, description = "The body did not arrive within the body read timeout", body = ErrorBody),
         (status = 413, description = "Body over the size limit", body = ErrorBody),
-        (status = 422, description = "Invalid options, or a whole mesh with no faces (`no_faces`)", body = ErrorBody),
+        (status = 422, description = "Invalid options, a picture with nothing on its backdrop to frame (`no_object`; `framing=centre_crop` takes it as it is), or a whole mesh with no faces (`no_faces`)", body = ErrorBody),
         (status = 429, description = "The queue is full: retry after Retry-After", body = ErrorBody),
         (status = 501, description = "This server has no image model", body = ErrorBody),
         (status = 503, description = "Shutting down, or waited too long in the queue", body = ErrorBody),

@@ -164,15 +164,17 @@ impl ImageUpload {
     }
 }
 
-/// Every unusable image is the client's mistake: 400 (INVALID_ARGUMENT over gRPC).
+/// An image that cannot be read is a 400; one that reads but shows no object to make a mesh
+/// of is a 422, as a mesh with no faces is.
 fn image_error(e: ImageInputError) -> ApiError {
-    let code = match e {
+    let (status, code) = match e {
         ImageInputError::TooLarge { .. } | ImageInputError::TooMuchMemory { .. } => {
-            "image_too_large"
+            (StatusCode::BAD_REQUEST, "image_too_large")
         }
-        _ => "invalid_image",
+        ImageInputError::NoObject(_) => (StatusCode::UNPROCESSABLE_ENTITY, "no_object"),
+        _ => (StatusCode::BAD_REQUEST, "invalid_image"),
     };
-    ApiError::new(StatusCode::BAD_REQUEST, code, e.to_string())
+    ApiError::new(status, code, e.to_string())
 }
 
 #[cfg(test)]
@@ -185,8 +187,12 @@ mod tests {
         ImageDefaults { steps: 7, guidance: 2.0, decode: ImageOptions::new(16) }
     }
 
+    /// A dark square on a green backdrop.
     fn png(width: u32, height: u32) -> Vec<u8> {
-        let img = image::RgbImage::from_pixel(width, height, image::Rgb([10, 200, 30]));
+        let img = image::RgbImage::from_fn(width, height, |x, y| {
+            let inside = |v: u32, side: u32| (side / 4..side - side / 4).contains(&v);
+            image::Rgb(if inside(x, width) && inside(y, height) { [20; 3] } else { [10, 200, 30] })
+        });
         let mut out = std::io::Cursor::new(Vec::new());
         img.write_to(&mut out, image::ImageFormat::Png).unwrap();
         out.into_inner()
@@ -292,7 +298,7 @@ mod tests {
     }
 
     #[test]
-    fn bad_images_are_400_with_a_reason() {
+    fn bad_images_are_400_and_blank_ones_422_with_a_reason() {
         let parse = |body: Vec<u8>| {
             read("image/png", GenerateOptions::default(), body).unwrap().parse(&defaults())
         };
@@ -307,6 +313,12 @@ mod tests {
         };
         let upload = read("image/png", GenerateOptions::default(), png(64, 8)).unwrap();
         assert_eq!(upload.parse(&tight).unwrap_err().code, "image_too_large");
+        let blank = image::RgbImage::from_pixel(40, 30, image::Rgb([250, 250, 250]));
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        blank.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+        let err = parse(bytes.into_inner()).unwrap_err();
+        assert_eq!(err.status, 422);
+        assert_eq!(err.code, "no_object", "{}", err.message);
         assert_eq!(
             read("text/plain", GenerateOptions::default(), png(8, 8)).unwrap_err().status,
             400

@@ -223,6 +223,23 @@ try {
   result.no_faces_text = await text('#error');
   assert.match(result.no_faces_text, /^The model produced no faces for this input/);
 
+  step('a blank picture says there is no object');
+  // A white PNG drawn by the browser: framed as an object (the default), nothing is on it.
+  const blank = await page.evaluate(() => {
+    const canvas = document.createElement('canvas');
+    [canvas.width, canvas.height] = [60, 40];
+    const context = canvas.getContext('2d');
+    context.fillStyle = '#ffffff';
+    context.fillRect(0, 0, 60, 40);
+    return canvas.toDataURL('image/png').split(',')[1];
+  });
+  await writeFile(`${artifacts}/blank.png`, Buffer.from(blank, 'base64'));
+  await fileInput.uploadFile(`${artifacts}/blank.png`);
+  await page.waitForFunction(() => document.body.dataset.state === 'error'
+    && document.getElementById('input-name').textContent.startsWith('blank.png'));
+  result.no_object_text = await text('#error');
+  assert.match(result.no_object_text, /^422 no_object: no object found in the picture: .*centre_crop/);
+
   step('an image: diffusion progress, then faces');
   const { image_model: imageModel } = await (await fetch(`${base}/v1/info`)).json();
   assert.equal(await text('#framing-default'), `the server's (${imageModel.default_framing})`);
