@@ -251,6 +251,14 @@ struct AeArgs {
     flip_probability: f32,
     #[arg(long, default_value_t = 0.25)]
     scale_jitter: f32,
+    /// The share of samples whose encoder points come as a scan's do: moved by noise (see
+    /// --scan-noise) and with normals estimated from them, as a request without normals has.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_share)]
+    scanned_share: f32,
+    /// The largest standard deviation of a scanned sample's noise, as a share of its longest
+    /// side (each draws its own from 0 to this).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_share)]
+    scan_noise: f32,
     #[arg(long, default_value_t = 16)]
     eval_meshes: usize,
     #[arg(long, default_value_t = 16)]
@@ -909,6 +917,9 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
                 flip_probability: args.flip_probability,
                 scale_jitter: args.scale_jitter,
                 any_angle_share: args.any_angle_share,
+                // The image model learns the latents of the meshes' own surfaces.
+                scanned_share: 0.0,
+                scan_noise: 0.0,
             },
             view,
             seed: args.seed,
@@ -977,6 +988,8 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         flip_probability: args.flip_probability,
         scale_jitter: args.scale_jitter,
         any_angle_share: args.any_angle_share,
+        scanned_share: args.scanned_share,
+        scan_noise: args.scan_noise,
     };
     Ok(TrainConfig {
         data: args.data.clone(),

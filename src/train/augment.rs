@@ -1,11 +1,12 @@
-//! Augmentation as in the paper: random rotation, random flips, independent scaling per axis.
+//! Augmentation as in the paper: random rotation, random flips, independent scaling per axis;
+//! and, beyond it, encoder points taken as a scan gives them (noisy, normals estimated).
 
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::mesh::Mesh;
 use crate::mesh::transform::{Mat3, mat_mul, rotation, rotation_from_quaternion, scaling};
+use crate::mesh::{Mesh, NORMAL_NEIGHBOURS, estimate_normals};
 
 /// The vertical axis: y, as in glTF and in the low-poly data set (whose meshes stand on
 /// y = 0); procedural shapes are built the same way.
@@ -43,6 +44,16 @@ pub struct AugmentConfig {
     /// angle.
     #[serde(default = "every_sample")]
     pub any_angle_share: f32,
+    /// The share of samples whose encoder points come as a scan's do ([`as_scanned`]): users'
+    /// point clouds often have no normals, and the model trained on the surface's alone
+    /// answers estimated ones and noise with heavier, less manifold meshes
+    /// (`docs/decisions.md`, "Inputs as users send them"). Runs from before it had none.
+    #[serde(default)]
+    pub scanned_share: f32,
+    /// The largest standard deviation of a scanned sample's noise, as a share of its longest
+    /// side: each draws its own uniformly from 0 to this.
+    #[serde(default)]
+    pub scan_noise: f32,
 }
 
 fn every_sample() -> f32 {
@@ -56,6 +67,8 @@ impl AugmentConfig {
         flip_probability: 0.0,
         scale_jitter: 0.0,
         any_angle_share: 0.0,
+        scanned_share: 0.0,
+        scan_noise: 0.0,
     };
 }
 
@@ -66,6 +79,8 @@ impl Default for AugmentConfig {
             flip_probability: 0.5,
             scale_jitter: 0.25,
             any_angle_share: 0.25,
+            scanned_share: 0.0,
+            scan_noise: 0.0,
         }
     }
 }
@@ -125,6 +140,35 @@ fn right_angle_rotation(i: usize) -> Mat3 {
 /// The mesh under a random augmentation (winding kept outward, see `Mesh::transformed`).
 pub fn augment(mesh: &Mesh, cfg: &AugmentConfig, rng: &mut impl Rng) -> Mesh {
     mesh.transformed(&random_transform(cfg, rng), [0.0; 3])
+}
+
+/// `points` as a scan gives them, with [`AugmentConfig::scanned_share`]'s probability: each
+/// point moved by Gaussian noise (a standard deviation drawn from 0 to
+/// [`AugmentConfig::scan_noise`] of the longest side), and the normals estimated from the moved
+/// points as a request without normals has them. With a share of 0 no number is drawn, so
+/// runs from before the share existed draw the same batches.
+pub fn maybe_scanned(points: Mesh, cfg: &AugmentConfig, rng: &mut impl Rng) -> Mesh {
+    if cfg.scanned_share <= 0.0 || rng.random::<f32>() >= cfg.scanned_share {
+        return points;
+    }
+    as_scanned(points, cfg.scan_noise, rng)
+}
+
+fn as_scanned(mut points: Mesh, max_noise: f32, rng: &mut impl Rng) -> Mesh {
+    let longest = points
+        .bounds()
+        .map_or(0.0, |(lo, hi)| (0..3).map(|a| hi[a] - lo[a]).fold(0.0f32, f32::max));
+    let sigma = rng.random::<f32>() * max_noise * longest;
+    if sigma > 0.0 {
+        for v in &mut points.vertices {
+            for c in v.iter_mut() {
+                let offset: f32 = StandardNormal.sample(rng);
+                *c += sigma * offset;
+            }
+        }
+    }
+    points.normals = Some(estimate_normals(&points.vertices, NORMAL_NEIGHBOURS));
+    points
 }
 
 #[cfg(test)]
@@ -201,6 +245,74 @@ mod tests {
         let old = r#"{"rotation":"upright","flip_probability":0.5,"scale_jitter":0.25}"#;
         let cfg: AugmentConfig = serde_json::from_str(old).unwrap();
         assert_eq!(cfg.any_angle_share, 1.0);
+        assert_eq!((cfg.scanned_share, cfg.scan_noise), (0.0, 0.0), "and nothing scanned");
+    }
+
+    /// 4,096 points on a 2 x 1 x 1 box's surface, with its faces' normals.
+    fn box_points() -> Mesh {
+        let surface = crate::mesh::primitives::cuboid([2.0, 1.0, 1.0]);
+        crate::mesh::sample_surface(&surface, 4096, 0).unwrap()
+    }
+
+    /// Root mean square distance between paired points.
+    fn rms_moved(a: &Mesh, b: &Mesh) -> f32 {
+        let sum: f32 = a
+            .vertices
+            .iter()
+            .zip(&b.vertices)
+            .map(|(p, q)| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>())
+            .sum();
+        (sum / a.vertices.len() as f32).sqrt()
+    }
+
+    #[test]
+    fn scanned_points_move_by_their_noise_and_have_estimated_normals() {
+        let points = box_points();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        // Without noise the points stay; their normals are estimated, so away from the box's
+        // edges they are the faces' (up to sign), and at the edges they are not.
+        let still = as_scanned(points.clone(), 0.0, &mut rng);
+        assert_eq!(still.vertices, points.vertices);
+        let (true_normals, estimated) = (points.normals.clone().unwrap(), still.normals.unwrap());
+        let agree = |i: usize| {
+            (0..3).map(|k| true_normals[i][k] * estimated[i][k]).sum::<f32>().abs() > 0.99
+        };
+        let off_the_edges = |p: [f32; 3]| {
+            // How far inside the box each coordinate is: ~0 on the point's own face; the next
+            // smallest is the distance to the nearest edge.
+            let mut margins = [1.0 - p[0].abs(), 0.5 - p[1].abs(), 0.5 - p[2].abs()];
+            margins.sort_by(f32::total_cmp);
+            margins[1] > 0.2
+        };
+        let (inner, edge): (Vec<usize>, Vec<usize>) =
+            (0..points.vertices.len()).partition(|&i| off_the_edges(points.vertices[i]));
+        assert!(inner.len() > 1000 && inner.iter().all(|&i| agree(i)));
+        assert!(edge.iter().any(|&i| !agree(i)));
+        // With noise up to 1% of the 2-long side, each sample draws its own: never more, and
+        // not always the same.
+        let moved: Vec<f32> = (0..20)
+            .map(|_| rms_moved(&as_scanned(box_points(), 0.01, &mut rng), &box_points()))
+            .collect();
+        // The per-point distance's RMS is sqrt(3) sigma, sigma at most 0.02.
+        assert!(moved.iter().all(|&m| m <= 0.02 * 3f32.sqrt() * 1.1), "{moved:?}");
+        assert!(moved.iter().any(|&m| m > 0.01) && moved.iter().any(|&m| m < 0.01), "{moved:?}");
+    }
+
+    #[test]
+    fn the_scanned_share_is_the_share_of_samples_scanned() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let points =
+            crate::mesh::sample_surface(&crate::mesh::primitives::cuboid([1.0; 3]), 64, 0).unwrap();
+        let scanned = |cfg: &AugmentConfig, rng: &mut rand_chacha::ChaCha8Rng| {
+            (0..400).filter(|_| maybe_scanned(points.clone(), cfg, rng) != points).count()
+        };
+        let half = AugmentConfig { scanned_share: 0.5, scan_noise: 0.01, ..Default::default() };
+        let n = scanned(&half, &mut rng);
+        assert!((160..240).contains(&n), "{n} of 400");
+        // A share of 0 draws no number: the next draws are those of a run without the option.
+        let before = rng.clone().random::<u64>();
+        assert_eq!(scanned(&AugmentConfig::default(), &mut rng), 0);
+        assert_eq!(rng.random::<u64>(), before);
     }
 
     #[test]

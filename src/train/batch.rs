@@ -16,7 +16,7 @@ use crate::model::FaceConfig;
 use crate::tokenize::{FaceToken, Quantizer, tokenize};
 
 use super::TrainError;
-use super::augment::{AugmentConfig, augment};
+use super::augment::{AugmentConfig, augment, maybe_scanned};
 use super::dataset::FolderData;
 use super::procedural::{ProceduralShapes, ShapeKind};
 
@@ -74,7 +74,8 @@ pub fn prepare_sample(
         return Ok(None);
     }
     let drawn = cfg.num_points.saturating_mul(cfg.point_oversampling.max(1));
-    let cloud = spread_points(sample_surface(&normalized, drawn, rng.random())?, cfg.num_points);
+    let pool = sample_surface(&normalized, drawn, rng.random())?;
+    let cloud = spread_points(maybe_scanned(pool, &cfg.augment, rng), cfg.num_points);
     let start = rng.random_range(0..cloud.vertices.len().max(1));
     let queries = farthest_point_sampling(&cloud.vertices, cfg.num_queries, start)
         .into_iter()
@@ -331,6 +332,30 @@ mod tests {
         // sampling keeps every pair at least about the spacing of an even cover apart.
         let (drawn, spread) = (closest_pair(1), closest_pair(4));
         assert!(spread > 5.0 * drawn, "{spread} against {drawn}");
+    }
+
+    #[test]
+    fn scanned_samples_keep_their_faces_and_take_noisy_points() {
+        let sphere = crate::mesh::primitives::uv_sphere(1.0, 16, 8);
+        let sample = |scanned_share: f32| {
+            let mut cfg = config(300).sample;
+            cfg.augment = AugmentConfig { scanned_share, scan_noise: 0.02, ..AugmentConfig::OFF };
+            let mut rng = ChaCha8Rng::seed_from_u64(3);
+            prepare_sample("sphere", &sphere, &cfg, 400, &mut rng).unwrap().unwrap()
+        };
+        let (surface, scanned) = (sample(0.0), sample(1.0));
+        assert_eq!(scanned.faces, surface.faces, "the targets are the mesh's own");
+        assert_eq!(scanned.points.len(), surface.points.len());
+        // Points off the unit sphere by the noise, where the surface's lie on it (up to its
+        // flat faces' sag).
+        let off = |s: &TrainingSample| {
+            s.points
+                .iter()
+                .map(|p| (p.iter().map(|c| c * c).sum::<f32>().sqrt() - 1.0).abs())
+                .fold(0.0f32, f32::max)
+        };
+        assert!(off(&scanned) > off(&surface), "{} against {}", off(&scanned), off(&surface));
+        assert_ne!(scanned.normals, surface.normals);
     }
 
     #[test]
