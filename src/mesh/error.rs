@@ -12,7 +12,7 @@ pub enum MeshError {
     /// The bytes are not a valid file of the format (truncated, malformed, hostile).
     #[error("malformed {format} file: {message}")]
     Malformed { format: &'static str, message: String },
-    /// A valid file that uses something we do not read (for example Draco compression).
+    /// A valid file that uses something we do not read (for example sparse accessors).
     #[error("unsupported {format} feature: {message}")]
     Unsupported { format: &'static str, message: String },
     /// The file would exceed a configured limit (vertices, faces, bytes).

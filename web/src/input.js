@@ -3,6 +3,7 @@
 
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
 import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 import { STLLoader } from 'three/addons/loaders/STLLoader.js';
@@ -66,7 +67,10 @@ async function load(bytes, extension) {
     case 'obj':
       return new OBJLoader().parse(new TextDecoder().decode(bytes));
     case 'glb':
-      return (await new GLTFLoader().parseAsync(bytes, '')).scene;
+      // Quantized and meshopt-compressed files preview too; a Draco-compressed one, whose
+      // decoder is a separate download, goes to the server without a preview.
+      return (await new GLTFLoader().setMeshoptDecoder(MeshoptDecoder).parseAsync(bytes, ''))
+        .scene;
     default:
       return null;
   }

@@ -7,6 +7,7 @@
 
 import assert from 'node:assert/strict';
 import { copyFile, mkdir, readFile, readdir, rm, writeFile } from 'node:fs/promises';
+import { statSync } from 'node:fs';
 import puppeteer from 'puppeteer-core';
 
 const base = process.env.MESHSTREAM_URL;
@@ -176,6 +177,21 @@ try {
   result.dropped_mesh_faces = await faceCount();
   assert(result.dropped_mesh_faces > 0);
   await shoot('dropped-mesh');
+
+  step('a GLB made small for the web: meshopt previews, Draco goes as it is');
+  const webGltf = new URL('../../tests/data/web-gltf/', import.meta.url);
+  for (const [name, preview] of [['pine-tree-meshopt.glb', ': 4096 points drawn on its surface'], ['pine-tree-draco.glb', '']]) {
+    // Sent once the page has tried to read it, and the request sets the page running first.
+    const answered = page.waitForResponse((r) => r.url().includes('/reconstruct'));
+    await fileInput.uploadFile(new URL(name, webGltf).pathname);
+    await answered;
+    await page.waitForFunction(() => document.body.dataset.state !== 'running');
+    assert.equal(await state(), 'done', `${name}: ${await text('#error')}`);
+    assert.equal(await text('#input-name'), `${name} (${(statSync(new URL(name, webGltf)).size / 1024).toFixed(1)} KB)${preview}`);
+    result[`${name}_faces`] = await faceCount();
+    assert(result[`${name}_faces`] > 0, `${name}: no faces`);
+  }
+  await shoot('web-gltf');
 
   step('an option past the server\'s limit shows the API\'s message');
   const tooMany = await fetch(`${base}/reconstruct?max_faces=999999`, {

@@ -2,9 +2,18 @@
 //! the default scene (or of all scenes when none is the default), node transforms applied.
 //! A file whose only geometry is POINTS primitives is read as a point cloud.
 //!
+//! Files made small for the web are read too: integer positions and normals
+//! (`KHR_mesh_quantization`), buffer views compressed by meshoptimizer
+//! (`EXT_meshopt_compression`, [`meshopt`]) and Draco-compressed primitives
+//! (`KHR_draco_mesh_compression`, [`draco`]).
+//!
 //! Accessor data is read here rather than through `gltf::mesh::Reader`, because that reader
 //! trusts the file (mismatched strides or counts panic inside it); every range is checked first.
 
+mod draco;
+mod meshopt;
+
+use std::collections::HashMap;
 use std::path::Path;
 
 use gltf::accessor::{Accessor, DataType, Dimensions};
@@ -16,7 +25,10 @@ use super::assemble::Assembler;
 use super::{Mesh, MeshError, ReadLimits};
 
 const FORMAT: &str = "glTF";
-const DRACO: &str = "KHR_draco_mesh_compression";
+
+/// Required extensions that change how geometry is stored, and that this reader decodes.
+const GEOMETRY_EXTENSIONS: [&str; 4] =
+    ["KHR_mesh_quantization", draco::EXTENSION, meshopt::EXTENSIONS[0], meshopt::EXTENSIONS[1]];
 
 fn malformed(message: impl Into<String>) -> MeshError {
     MeshError::malformed(FORMAT, message)
@@ -41,7 +53,6 @@ pub(crate) fn read(
     limits: &ReadLimits,
 ) -> Result<Mesh, MeshError> {
     let (document, blob) = parse(bytes)?;
-    let draco_used = document.extensions_used().any(|e| e == DRACO);
     let buffers = load_buffers(&document, blob, base, limits, bytes.len() as u64)?;
     let instances = instances(&document)?;
 
@@ -74,7 +85,7 @@ pub(crate) fn read(
 
     let mut asm = Assembler::new(FORMAT, limits);
     let mut normals = Vec::new();
-    let ctx = Context { buffers: &buffers, draco_used };
+    let ctx = Context::new(&document, &buffers, primitives().filter(|p| wanted(p.mode())), limits)?;
     for instance in &instances {
         for primitive in instance.mesh.primitives().filter(|p| wanted(p.mode())) {
             let normals = with_normals.then_some(&mut normals);
@@ -124,8 +135,10 @@ fn parse(bytes: &[u8]) -> Result<(Document, Option<Vec<u8>>), MeshError> {
         gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| malformed(e.to_string()))?;
     let mut root = gltf.document.into_json();
     // The crate refuses every required extension it does not implement; most (materials,
-    // textures, lights) do not touch geometry, and those that do are refused here by name.
-    if let Some(ext) = root.extensions_required.iter().find(|e| !appearance_only(e)) {
+    // textures, lights) do not touch geometry, and those that do are decoded here or refused
+    // by name.
+    let read_here = |e: &String| appearance_only(e) || GEOMETRY_EXTENSIONS.contains(&e.as_str());
+    if let Some(ext) = root.extensions_required.iter().find(|e| !read_here(e)) {
         return Err(unsupported(format!("required extension {ext}")));
     }
     root.extensions_required.clear();
@@ -177,12 +190,18 @@ fn load_buffers(
     base: Option<&Path>,
     limits: &ReadLimits,
     input_bytes: u64,
-) -> Result<Vec<Vec<u8>>, MeshError> {
+) -> Result<Vec<Option<Vec<u8>>>, MeshError> {
+    // Declared lengths include those of meshopt fallback buffers, which bound what their
+    // compressed views decode into.
     let declared = document.buffers().map(|b| b.length() as u64).fold(0u64, u64::saturating_add);
     limits.check_bytes(declared)?;
     let mut total = input_bytes;
     let mut buffers = Vec::new();
     for buffer in document.buffers() {
+        if meshopt::is_fallback(&buffer) {
+            buffers.push(None);
+            continue;
+        }
         let data = match buffer.source() {
             Source::Bin => {
                 blob.take().ok_or_else(|| malformed("a buffer refers to a missing BIN chunk"))?
@@ -212,7 +231,7 @@ fn load_buffers(
                 data.len()
             )));
         }
-        buffers.push(data);
+        buffers.push(Some(data));
     }
     Ok(buffers)
 }
@@ -332,6 +351,8 @@ struct Strided<'b> {
     stride: usize,
     size: usize,
     count: usize,
+    data_type: DataType,
+    normalized: bool,
 }
 
 impl<'b> Strided<'b> {
@@ -342,11 +363,16 @@ impl<'b> Strided<'b> {
             .ok_or_else(|| malformed("accessor element out of range"))
     }
 
+    /// Element `i` of a VEC3 accessor of floats or of (normalized) 8- or 16-bit integers.
     fn vec3(&self, i: usize) -> Result<[f32; 3], MeshError> {
-        let b: [u8; 12] = self.element(i)?.try_into().map_err(|_| malformed("bad vec3 element"))?;
-        Ok(std::array::from_fn(|k| {
-            f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]])
-        }))
+        let element = self.element(i)?;
+        let width = self.size / 3;
+        let mut v = [0.0; 3];
+        for (value, bytes) in v.iter_mut().zip(element.chunks_exact(width)) {
+            *value = scalar(bytes, self.data_type, self.normalized)
+                .ok_or_else(|| malformed("bad vec3 element"))?;
+        }
+        Ok(v)
     }
 
     fn index(&self, i: usize) -> Result<u32, MeshError> {
@@ -359,38 +385,93 @@ impl<'b> Strided<'b> {
     }
 }
 
+/// One component's value: a float, or an integer, which a normalized accessor maps to [0, 1]
+/// (unsigned) or [-1, 1] (signed) as the glTF specification says.
+fn scalar(bytes: &[u8], data_type: DataType, normalized: bool) -> Option<f32> {
+    let (value, max) = match (data_type, bytes) {
+        (DataType::F32, &[a, b, c, d]) => return Some(f32::from_le_bytes([a, b, c, d])),
+        (DataType::I8, &[a]) => (f32::from(a as i8), 127.0),
+        (DataType::U8, &[a]) => (f32::from(a), 255.0),
+        (DataType::I16, &[a, b]) => (f32::from(i16::from_le_bytes([a, b])), 32767.0),
+        (DataType::U16, &[a, b]) => (f32::from(u16::from_le_bytes([a, b])), 65535.0),
+        _ => return None,
+    };
+    Some(if normalized { (value / max).max(-1.0) } else { value })
+}
+
+/// What a primitive is made of, read from its accessors or decoded from Draco.
+struct Geometry {
+    positions: Vec<[f32; 3]>,
+    normals: Option<Vec<[f32; 3]>>,
+    /// `None`: the vertices in order.
+    indices: Option<Vec<u32>>,
+}
+
 struct Context<'b> {
-    buffers: &'b [Vec<u8>],
-    draco_used: bool,
+    document: &'b Document,
+    buffers: &'b [Option<Vec<u8>>],
+    /// The decoded bytes of the buffer views that are meshopt-compressed, by index.
+    decoded: HashMap<usize, Vec<u8>>,
+    limits: &'b ReadLimits,
 }
 
 impl<'b> Context<'b> {
-    fn accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'b>, MeshError> {
+    /// For reading `primitives`: the compressed buffer views they use are decoded here.
+    fn new(
+        document: &'b Document,
+        buffers: &'b [Option<Vec<u8>>],
+        primitives: impl Iterator<Item = Primitive<'b>>,
+        limits: &'b ReadLimits,
+    ) -> Result<Self, MeshError> {
+        let mut views = Vec::new();
+        for primitive in primitives {
+            if let Some(ext) = primitive.extension_value(draco::EXTENSION) {
+                views.push(view_at(document, draco::buffer_view(ext)?)?);
+                continue;
+            }
+            let accessors = [Semantic::Positions, Semantic::Normals]
+                .iter()
+                .filter_map(|semantic| primitive.get(semantic))
+                .chain(primitive.indices());
+            views.extend(accessors.filter_map(|accessor| accessor.view()));
+        }
+        let decoded = meshopt::decode_views(views, buffers)?;
+        Ok(Self { document, buffers, decoded, limits })
+    }
+
+    /// A buffer view's bytes: decoded when it is compressed, else its range of its buffer.
+    fn view_bytes(&self, view: &gltf::buffer::View) -> Result<&[u8], MeshError> {
+        if let Some(decoded) = self.decoded.get(&view.index()) {
+            return Ok(decoded);
+        }
+        let buffer = match self.buffers.get(view.buffer().index()) {
+            Some(Some(buffer)) => buffer,
+            Some(None) => {
+                return Err(malformed(format!(
+                    "buffer view {} is not compressed, and its buffer is a fallback without data",
+                    view.index()
+                )));
+            }
+            None => return Err(malformed("bad buffer index")),
+        };
+        view.offset()
+            .checked_add(view.length())
+            .and_then(|end| buffer.get(view.offset()..end))
+            .ok_or_else(|| malformed(format!("buffer view {} runs past its buffer", view.index())))
+    }
+
+    fn accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'_>, MeshError> {
         let i = accessor.index();
         if accessor.sparse().is_some() {
             return Err(unsupported(format!("sparse accessor {i} ({semantic})")));
         }
         let Some(view) = accessor.view() else {
-            return Err(if self.draco_used {
-                unsupported(format!(
-                    "Draco-compressed primitive ({semantic} accessor {i} has no data of its own)"
-                ))
-            } else {
-                unsupported(format!("{semantic} accessor {i} has no buffer view"))
-            });
+            return Err(unsupported(format!("{semantic} accessor {i} has no buffer view")));
         };
         let size = accessor.size();
         let stride = view.stride().unwrap_or(size);
         let count = accessor.count();
-        let buffer =
-            self.buffers.get(view.buffer().index()).ok_or_else(|| malformed("bad buffer index"))?;
-        let view_bytes = view
-            .offset()
-            .checked_add(view.length())
-            .and_then(|end| buffer.get(view.offset()..end))
-            .ok_or_else(|| {
-                malformed(format!("buffer view {} runs past its buffer", view.index()))
-            })?;
+        let view_bytes = self.view_bytes(&view)?;
         if count == 0 {
             return Err(malformed(format!(
                 "accessor {i} ({semantic}) is empty; glTF requires count >= 1"
@@ -405,18 +486,67 @@ impl<'b> Context<'b> {
             .ok_or_else(|| {
                 malformed(format!("accessor {i} ({semantic}) runs past its buffer view"))
             })?;
-        Ok(Strided { data, stride, size, count })
+        let (data_type, normalized) = (accessor.data_type(), accessor.normalized());
+        Ok(Strided { data, stride, size, count, data_type, normalized })
     }
 
-    fn vec3_accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'b>, MeshError> {
-        if accessor.data_type() != DataType::F32 || accessor.dimensions() != Dimensions::Vec3 {
+    /// A VEC3 accessor of floats, or of 8- or 16-bit integers (`KHR_mesh_quantization`).
+    fn vec3_accessor(&self, accessor: &Accessor, semantic: &str) -> Result<Strided<'_>, MeshError> {
+        let quantized = matches!(
+            accessor.data_type(),
+            DataType::I8 | DataType::U8 | DataType::I16 | DataType::U16
+        );
+        if accessor.dimensions() != Dimensions::Vec3
+            || !(accessor.data_type() == DataType::F32 || quantized)
+        {
             return Err(unsupported(format!(
-                "{semantic} stored as {:?} {:?}, not float VEC3",
+                "{semantic} stored as {:?} {:?}, not VEC3 of floats or 8- or 16-bit integers",
                 accessor.dimensions(),
                 accessor.data_type()
             )));
         }
         self.accessor(accessor, semantic)
+    }
+
+    /// A primitive's positions, normals when `with_normals` and indices, from its accessors.
+    fn accessor_geometry(
+        &self,
+        primitive: &Primitive,
+        with_normals: bool,
+    ) -> Result<Geometry, MeshError> {
+        let Some(positions) = primitive.get(&Semantic::Positions) else {
+            return Err(malformed(format!("primitive {} has no POSITION", primitive.index())));
+        };
+        let positions = self.vec3_accessor(&positions, "POSITION")?;
+        let n = positions.count;
+        self.limits.check_vertices(n as u64)?;
+        let read_all = |source: &Strided| -> Result<Vec<[f32; 3]>, MeshError> {
+            (0..source.count).map(|i| source.vec3(i)).collect()
+        };
+        let normals = if with_normals {
+            let accessor =
+                primitive.get(&Semantic::Normals).ok_or_else(|| malformed("NORMAL vanished"))?;
+            let source = self.vec3_accessor(&accessor, "NORMAL")?;
+            if source.count != n {
+                return Err(malformed(format!("{} normals for {n} positions", source.count)));
+            }
+            Some(read_all(&source)?)
+        } else {
+            None
+        };
+        let indices = match primitive.indices() {
+            Some(accessor) => {
+                if accessor.dimensions() != Dimensions::Scalar
+                    || !matches!(accessor.data_type(), DataType::U8 | DataType::U16 | DataType::U32)
+                {
+                    return Err(malformed("indices must be unsigned integer scalars"));
+                }
+                let source = self.accessor(&accessor, "indices")?;
+                Some((0..source.count).map(|i| source.index(i)).collect::<Result<_, _>>()?)
+            }
+            None => None,
+        };
+        Ok(Geometry { positions: read_all(&positions)?, normals, indices })
     }
 
     fn read_primitive(
@@ -426,11 +556,20 @@ impl<'b> Context<'b> {
         asm: &mut Assembler,
         normals: Option<&mut Vec<[f32; 3]>>,
     ) -> Result<(), MeshError> {
-        let Some(positions) = primitive.get(&Semantic::Positions) else {
-            return Err(malformed(format!("primitive {} has no POSITION", primitive.index())));
+        let with_normals = normals.is_some();
+        let (geometry, mode) = match primitive.extension_value(draco::EXTENSION) {
+            Some(ext) => {
+                let view = view_at(self.document, draco::buffer_view(ext)?)?;
+                let geometry =
+                    draco::decode(self.view_bytes(&view)?, ext, with_normals, self.limits)?;
+                // Draco decodes strips and fans into a list.
+                let mode =
+                    if primitive.mode() == Mode::Points { Mode::Points } else { Mode::Triangles };
+                (geometry, mode)
+            }
+            None => (self.accessor_geometry(primitive, with_normals)?, primitive.mode()),
         };
-        let positions = self.vec3_accessor(&positions, "POSITION")?;
-        let n = positions.count;
+        let n = geometry.positions.len();
         asm.check_limits(n as u64, 0)?;
         let base = asm.vertices.len();
         if u32::try_from(base + n).is_err() {
@@ -438,47 +577,21 @@ impl<'b> Context<'b> {
         }
         let base = base as u32;
         asm.reserve(n as u64, 0)?;
-        for i in 0..n {
-            asm.push_vertex(transform_point(world, positions.vec3(i)?))?;
+        for p in geometry.positions {
+            asm.push_vertex(transform_point(world, p))?;
         }
         let (normal_matrix, winding) = normal_matrix(world);
-        if let Some(normals) = normals {
-            let accessor =
-                primitive.get(&Semantic::Normals).ok_or_else(|| malformed("NORMAL vanished"))?;
-            let source = self.vec3_accessor(&accessor, "NORMAL")?;
-            if source.count != n {
-                return Err(malformed(format!("{} normals for {n} positions", source.count)));
-            }
-            normals.reserve(n);
-            for i in 0..n {
-                normals.push(transform_normal(&normal_matrix, source.vec3(i)?));
-            }
+        if let (Some(normals), Some(source)) = (normals, geometry.normals) {
+            normals.extend(source.into_iter().map(|n| transform_normal(&normal_matrix, n)));
         }
-        if primitive.mode() == Mode::Points {
+        if mode == Mode::Points {
             return Ok(());
         }
-
-        let indices = match primitive.indices() {
-            Some(accessor) => {
-                if accessor.dimensions() != Dimensions::Scalar
-                    || !matches!(accessor.data_type(), DataType::U8 | DataType::U16 | DataType::U32)
-                {
-                    return Err(malformed("indices must be unsigned integer scalars"));
-                }
-                let source = self.accessor(&accessor, "indices")?;
-                let mut indices = Vec::with_capacity(source.count);
-                for i in 0..source.count {
-                    let index = source.index(i)?;
-                    if index as usize >= n {
-                        return Err(malformed(format!("index {index} with {n} vertices")));
-                    }
-                    indices.push(index);
-                }
-                indices
-            }
-            None => (0..n as u32).collect(),
-        };
-        let triangles = triangles(primitive.mode(), &indices)?;
+        let indices = geometry.indices.unwrap_or_else(|| (0..n as u32).collect());
+        if let Some(bad) = indices.iter().find(|&&index| index as usize >= n) {
+            return Err(malformed(format!("index {bad} with {n} vertices")));
+        }
+        let triangles = triangles(mode, &indices)?;
         asm.check_limits(0, triangles.len() as u64)?;
         for [a, b, c] in triangles {
             // A mirroring transform turns the winding; swapping two corners restores it.
@@ -487,6 +600,14 @@ impl<'b> Context<'b> {
         }
         Ok(())
     }
+}
+
+/// Buffer view `index`, named by an extension (the document's own indices are validated).
+fn view_at(document: &Document, index: usize) -> Result<gltf::buffer::View<'_>, MeshError> {
+    document
+        .views()
+        .nth(index)
+        .ok_or_else(|| malformed(format!("buffer view {index} does not exist")))
 }
 
 /// The triangles of a triangle list, strip or fan, as the glTF specification defines them.
