@@ -22,8 +22,22 @@ pub fn convex_hull(points: &[[f32; 3]]) -> Result<Mesh, BaselineError> {
     if faces.len() < 4 {
         return Err(BaselineError::Hull(format!("{} faces is not a closed hull", faces.len())));
     }
+    let centroid =
+        vertices.iter().fold(Point3::origin(), |sum, p| sum + p.coords) / vertices.len() as f64;
+    let faces = faces.into_iter().map(|f| facing_out(&vertices, centroid, f)).collect();
     let vertices = vertices.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
     Ok(Mesh::new(vertices, faces))
+}
+
+/// `face` wound to face away from `centroid`, the mean of the hull's `vertices`, which lies
+/// inside a convex hull. Why: on nearly flat inputs (a tetrahedron of volume 0.3 spanning 15
+/// units, found by the property test below) parry winds some faces inward.
+fn facing_out(vertices: &[Point3<f64>], centroid: Point3<f64>, [a, b, c]: [u32; 3]) -> [u32; 3] {
+    let [pa, pb, pc] = [a, b, c].map(|i| vertices[i as usize]);
+    let normal = (pb - pa).cross(&(pc - pa));
+    let outward =
+        (pa - centroid).dot(&normal) + (pb - centroid).dot(&normal) + (pc - centroid).dot(&normal);
+    if outward < 0.0 { [a, c, b] } else { [a, b, c] }
 }
 
 #[cfg(test)]
