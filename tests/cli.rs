@@ -205,6 +205,21 @@ fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
         assert!(lo[a] >= offset[a] - 5.1 && hi[a] <= offset[a] + 5.1, "{lo:?} {hi:?}");
     }
 
+    // The box lying with +z up, said so: the same mesh, lying as the input does.
+    let lie = |v: [f32; 3]| [v[0], -v[2], v[1]];
+    let mut lying = cuboid([10.0, 4.0, 2.0]).translated(offset);
+    lying.vertices.iter_mut().for_each(|v| *v = lie(*v));
+    write_mesh_file(&lying, &input, None).unwrap();
+    let turned = dir.path().join("turned.glb");
+    let args = ["reconstruct", path(&input), "-o", path(&turned), "--model", path(&model)];
+    let o = meshstream(&[&args[..], &["--up", "z"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let turned = read_mesh_file(&turned, &ReadLimits::default()).unwrap();
+    assert_eq!(turned.faces, mesh.faces);
+    assert_eq!(turned.vertices, mesh.vertices.iter().map(|&v| lie(v)).collect::<Vec<_>>());
+    let o = meshstream(&[&args[..], &["--up", "w"]].concat());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("use one of x, -x, y, -y, z, -z"));
+
     let missing =
         meshstream(&["reconstruct", path(&input), "-o", path(&out), "--model", "/no/model"]);
     assert!(!missing.status.success());

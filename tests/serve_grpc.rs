@@ -70,6 +70,13 @@ async fn files_are_accepted_and_bad_input_is_invalid_argument() {
     };
     let mut ok = grpc.reconstruct(file(ply.clone(), "")).await.unwrap().into_inner();
     while ok.message().await.unwrap().is_some() {}
+    // A file lying with +z up, said so.
+    let z_up = ReconstructRequest {
+        options: Some(Options { max_faces: Some(20), up: Some("z".into()), ..Options::default() }),
+        ..file(ply.clone(), "ply")
+    };
+    let mut ok = grpc.reconstruct(z_up).await.unwrap().into_inner();
+    while ok.message().await.unwrap().is_some() {}
 
     let bad = [
         file(b"garbage".to_vec(), ""),
@@ -104,6 +111,10 @@ async fn files_are_accepted_and_bad_input_is_invalid_argument() {
         },
         ReconstructRequest {
             options: Some(Options { candidates: Some(17), ..Options::default() }),
+            ..points_request(10)
+        },
+        ReconstructRequest {
+            options: Some(Options { up: Some("sideways".into()), ..Options::default() }),
             ..points_request(10)
         },
     ];

@@ -108,6 +108,34 @@ async fn a_glb_comes_back_in_the_callers_coordinates() {
         }
     }
 
+    // The same shape lying with +z up, sent with `up: "z"` (as a raw upload's query
+    // parameter too): the same answer, lying as sent. A turn between axes is exact, so are
+    // the answers, fitted or not.
+    let lie = |v: [f32; 3]| [v[0], -v[2], v[1]];
+    let mut lying = cloud.clone();
+    lying.vertices.iter_mut().for_each(|v| *v = lie(*v));
+    if let Some(normals) = lying.normals.as_mut() {
+        normals.iter_mut().for_each(|n| *n = lie(*n));
+    }
+    let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    let options = json!({"max_faces": 60});
+    let base = read(&reconstruct_glb(&server, &points_json(&cloud, options)).await.1);
+    let options = json!({"max_faces": 60, "up": "z"});
+    let out = read(&reconstruct_glb(&server, &points_json(&lying, options)).await.1);
+    assert_eq!(out.faces, base.faces);
+    assert_eq!(out.vertices, base.vertices.iter().map(|&v| lie(v)).collect::<Vec<_>>());
+    let upload = |query: &str| {
+        let ply = write_mesh(&lying, Format::Ply).unwrap();
+        let url = server.url(&format!("/reconstruct?{query}"));
+        client().post(url).header("content-type", "application/ply").body(ply).send()
+    };
+    let r = upload("max_faces=60&up=z").await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(read(&r.bytes().await.unwrap()).faces, base.faces);
+    let bad = upload("up=w").await.unwrap();
+    assert_eq!(bad.status(), 422);
+    assert!(bad.text().await.unwrap().contains("x, -x, y, -y, z, -z"));
+
     // Other formats by option, and a raw upload of a mesh file with options in the query.
     let (h, obj) =
         reconstruct_glb(&server, &points_json(&cloud, json!({"max_faces": 30, "format": "obj"})))

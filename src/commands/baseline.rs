@@ -4,7 +4,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use meshstream::baseline::{Method, PoissonOptions, baseline_mesh};
-use meshstream::mesh::{Format, REFERENCE_POINTS, reference_points, write_mesh_file};
+use meshstream::mesh::{Format, REFERENCE_POINTS, UpAxis, reference_points, write_mesh_file};
 use meshstream::model::checkpoint;
 
 use super::{normalized_input, point_count};
@@ -62,7 +62,7 @@ pub struct BaselineArgs {
 
 pub fn run(args: &BaselineArgs) -> anyhow::Result<()> {
     let max_faces = face_budget(args)?;
-    let (input, normalization) = normalized_input(&args.input)?;
+    let (input, normalization) = normalized_input(&args.input, UpAxis::Y)?;
     let cloud =
         reference_points(&input, args.points, args.seed).context("preparing the input points")?;
     let method = match args.method {

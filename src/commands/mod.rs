@@ -25,7 +25,7 @@ use anyhow::Context;
 use candle_core::Device;
 use meshstream::candidates::MAX_CANDIDATES;
 use meshstream::diffusion::{DiffusionModel, checkpoint as dit_checkpoint};
-use meshstream::mesh::{Mesh, Normalization, ReadLimits, read_mesh_file};
+use meshstream::mesh::{Mesh, Normalization, ReadLimits, UpAxis, read_mesh_file};
 use meshstream::model::quantize::load_quantized;
 use meshstream::model::{FaceModel, Quantize, QuantizeReport};
 
@@ -60,9 +60,10 @@ pub fn load_mesh(path: &Path) -> anyhow::Result<Mesh> {
 /// An input file in its normalized frame, and the normalization that puts a result back in
 /// the file's coordinates. `reconstruct` and `baseline` draw their points from it alike (see
 /// [`meshstream::mesh::input_clouds`]), so that the model and the baselines see the same.
-pub fn normalized_input(path: &Path) -> anyhow::Result<(Mesh, Normalization)> {
+pub fn normalized_input(path: &Path, up: UpAxis) -> anyhow::Result<(Mesh, Normalization)> {
     let input = load_mesh(path)?;
-    let normalization = Normalization::fit(&input.vertices).context("normalizing the input")?;
+    let normalization =
+        Normalization::fit(&input.vertices).context("normalizing the input")?.with_up(up);
     Ok((normalization.apply_mesh(&input), normalization))
 }
 

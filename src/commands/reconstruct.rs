@@ -4,7 +4,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS};
-use meshstream::mesh::{FitOptions, REFERENCE_POINTS, input_clouds};
+use meshstream::mesh::{FitOptions, REFERENCE_POINTS, UpAxis, input_clouds};
 use meshstream::model::{Quantize, parse_device};
 
 use super::decode::{DecodeArgs, FromPoints, decode, write_decoded};
@@ -61,6 +61,11 @@ pub struct ReconstructArgs {
     /// loads; the encoder and layers whose inputs do not fit the blocks stay f32).
     #[arg(long, default_value_t = Quantize::F32)]
     quantize: Quantize,
+    /// The input's up axis: y (glTF's), z (Blender, CAD, most scans), x, or one of them
+    /// negated. The model learnt shapes standing on +y: the input is turned onto it, and the
+    /// mesh written turned back.
+    #[arg(long, default_value = "y")]
+    up: UpAxis,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -70,7 +75,7 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         eprintln!("{report}");
     }
     let cfg = model.config().clone();
-    let (input, normalization) = normalized_input(&args.input)?;
+    let (input, normalization) = normalized_input(&args.input, args.up)?;
     // A draw of the input's points per candidate (see `meshstream::candidates`).
     let clouds = input_clouds(
         &input,

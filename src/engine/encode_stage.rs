@@ -226,6 +226,7 @@ mod tests {
     use super::*;
     use crate::engine::request::{DecodeOptions, PreparedPoints, Request};
     use crate::engine::{EngineConfig, Metrics};
+    use crate::mesh::UpAxis;
     use crate::mesh::primitives::uv_sphere;
     use crate::model::FaceConfig;
     use crate::model::testing::{max_abs_diff, random_model};
@@ -237,7 +238,8 @@ mod tests {
     /// A points request for a sphere of radius `r`, and the receiver of its events.
     fn pending(model: &FaceModel, r: f32) -> (Pending, tokio_mpsc::Receiver<Event>) {
         let points =
-            PreparedPoints::from_mesh(&uv_sphere(r, 6, 4), model.config(), 2048, 0, 1).unwrap();
+            PreparedPoints::from_mesh(&uv_sphere(r, 6, 4), model.config(), 2048, 0, 1, UpAxis::Y)
+                .unwrap();
         let (tx, rx) = tokio_mpsc::channel(4);
         let request = Request {
             id: format!("r{r}"),

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::diffusion::PreparedImage;
-use crate::mesh::{Mesh, Normalization, farthest_point_sampling, input_clouds};
+use crate::mesh::{Mesh, Normalization, UpAxis, farthest_point_sampling, input_clouds};
 use crate::model::{FaceConfig, SamplingParams};
 
 use super::EngineError;
@@ -39,20 +39,21 @@ impl PreparedPoints {
     /// From a point cloud (normals kept, or estimated when absent) or a mesh (its surface is
     /// sampled), in the caller's own coordinates, with up to `reference` points to judge and
     /// fit candidates against ([`crate::mesh::REFERENCE_POINTS`] unless a server is told
-    /// otherwise), and `draws` draws for the encoder (a request's candidate count). CPU work:
-    /// run it off the async runtime.
+    /// otherwise), and `draws` draws for the encoder (a request's candidate count); `up` is the
+    /// caller's up axis, turned onto the models' +y. CPU work: run it off the async runtime.
     pub fn from_mesh(
         input: &Mesh,
         cfg: &FaceConfig,
         reference: usize,
         seed: u64,
         draws: usize,
+        up: UpAxis,
     ) -> Result<Self, EngineError> {
         if input.vertices.is_empty() {
             return Err(EngineError::InvalidInput("the input has no points".into()));
         }
         input.validate()?;
-        let normalization = Normalization::fit(&input.vertices)?;
+        let normalization = Normalization::fit(&input.vertices)?.with_up(up);
         let clouds = input_clouds(
             &normalization.apply_mesh(input),
             cfg.num_points,
@@ -194,7 +195,8 @@ mod tests {
     fn a_mesh_is_sampled_for_the_reference_and_a_small_cloud_is_its_own() {
         let cfg = FaceConfig::tiny();
         let boxy = cuboid([2.0, 1.0, 0.5]).translated([10.0, 0.0, 0.0]);
-        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, REFERENCE_POINTS, 0, 1).unwrap();
+        let prepared =
+            PreparedPoints::from_mesh(&boxy, &cfg, REFERENCE_POINTS, 0, 1, UpAxis::Y).unwrap();
         assert_eq!(prepared.encoder.points.len(), cfg.num_points);
         assert!(prepared.more_draws.is_empty());
         assert_eq!(prepared.reference.vertices.len(), REFERENCE_POINTS);
@@ -203,20 +205,40 @@ mod tests {
         assert!(lo.iter().chain(&hi).all(|c| c.abs() <= 1.0 + 1e-5), "{lo:?} {hi:?}");
 
         let cloud = Mesh { faces: Vec::new(), ..sample_surface(&boxy, 3000, 1).unwrap() };
-        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, REFERENCE_POINTS, 0, 1).unwrap();
+        let prepared =
+            PreparedPoints::from_mesh(&cloud, &cfg, REFERENCE_POINTS, 0, 1, UpAxis::Y).unwrap();
         assert_eq!(prepared.reference.vertices, prepared.normalization.apply_mesh(&cloud).vertices);
         // A server told to judge against fewer takes a subset.
-        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 2000, 0, 1).unwrap();
+        let prepared = PreparedPoints::from_mesh(&cloud, &cfg, 2000, 0, 1, UpAxis::Y).unwrap();
         assert_eq!(prepared.reference.vertices.len(), 2000);
+    }
+
+    #[test]
+    fn a_z_up_input_is_prepared_as_the_same_input_standing_on_y() {
+        let cfg = FaceConfig::tiny();
+        let standing = cuboid([2.0, 3.0, 0.5]).translated([5.0, 1.0, 0.0]);
+        let lying = Normalization { center: [0.0; 3], half_extent: 1.0, up: UpAxis::Z }
+            .invert_mesh(&standing);
+        let expected = PreparedPoints::from_mesh(&standing, &cfg, 4096, 7, 1, UpAxis::Y).unwrap();
+        let prepared = PreparedPoints::from_mesh(&lying, &cfg, 4096, 7, 1, UpAxis::Z).unwrap();
+        assert_eq!(prepared.encoder, expected.encoder);
+        assert_eq!(prepared.reference, expected.reference);
+        // And the result goes back lying, as the caller sent it.
+        let corner = expected.normalization.apply([7.0, 2.5, 0.25]);
+        let back = prepared.normalization.invert(corner);
+        assert_eq!(
+            back,
+            Normalization { up: UpAxis::Z, ..Normalization::identity() }.invert([7.0, 2.5, 0.25])
+        );
     }
 
     #[test]
     fn each_candidate_reads_its_own_draw_of_the_points_and_shares_the_reference() {
         let cfg = FaceConfig::tiny();
         let boxy = cuboid([2.0, 1.0, 0.5]);
-        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 3).unwrap();
+        let prepared = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 3, UpAxis::Y).unwrap();
         assert_eq!(prepared.more_draws.len(), 2);
-        let alone = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 1).unwrap();
+        let alone = PreparedPoints::from_mesh(&boxy, &cfg, 4096, 3, 1, UpAxis::Y).unwrap();
         assert_eq!(prepared.encoder, alone.encoder);
         let candidates: Vec<PreparedPoints> = (0..4).map(|i| prepared.for_candidate(i)).collect();
         assert_eq!(candidates[0].encoder, prepared.encoder);

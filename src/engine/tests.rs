@@ -4,7 +4,7 @@ use std::time::{Duration, Instant};
 use super::*;
 use crate::candidates::{MAX_CANDIDATES, candidate_options, input_distance};
 use crate::mesh::primitives::uv_sphere;
-use crate::mesh::{Mesh, REFERENCE_POINTS};
+use crate::mesh::{Mesh, REFERENCE_POINTS, UpAxis};
 use crate::model::testing::random_model;
 use crate::model::{GenerateOptions, Generation, generate, step_generations};
 use crate::tokenize::{FaceToken, detokenize};
@@ -29,8 +29,15 @@ fn request_with_draws(model: &FaceModel, id: usize, max_faces: usize, draws: usi
     Request {
         id: format!("r{id}"),
         conditioning: Conditioning::Points(
-            PreparedPoints::from_mesh(&shape, model.config(), REFERENCE_POINTS, id as u64, draws)
-                .unwrap(),
+            PreparedPoints::from_mesh(
+                &shape,
+                model.config(),
+                REFERENCE_POINTS,
+                id as u64,
+                draws,
+                UpAxis::Y,
+            )
+            .unwrap(),
         ),
         options: DecodeOptions { max_faces: Some(max_faces), ..Default::default() },
         deadline: None,

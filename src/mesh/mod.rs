@@ -30,7 +30,7 @@ pub use folded_faces::without_folded_faces;
 pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
 pub use limits::ReadLimits;
-pub use normalize::Normalization;
+pub use normalize::{Normalization, UpAxis};
 pub use points::{
     InputClouds, NORMAL_NEIGHBOURS, REFERENCE_POINTS, estimate_normals, input_clouds,
     reference_points, spread_points,

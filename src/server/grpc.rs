@@ -167,6 +167,7 @@ impl GrpcService {
             weld_radius: options.weld_radius.map(|n| u16::try_from(n).unwrap_or(u16::MAX)),
             seed: options.seed,
             format: None,
+            up: options.up,
         };
         let (limits, engine) = (self.limits, self.engine.clone());
         let (parsed, prepared) = tokio::task::spawn_blocking(move || {
@@ -187,7 +188,7 @@ impl GrpcService {
             };
             let parsed = options.checked(mesh)?;
             let draws = parsed.decode.candidates.unwrap_or(1);
-            let prepared = prepare(&engine, &parsed.input, &limits, parsed.seed, draws)?;
+            let prepared = prepare(&engine, &parsed.input, &limits, parsed.seed, draws, parsed.up)?;
             Ok((parsed, prepared))
         })
         .await

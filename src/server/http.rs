@@ -180,7 +180,8 @@ async fn reconstruct(
                 parsed.decode.fit_rounds.get_or_insert(whole_mesh.fit_rounds);
             }
             let draws = parsed.decode.candidates.unwrap_or(1);
-            let conditioning = prepare(&engine, &parsed.input, &limits, parsed.seed, draws)?;
+            let conditioning =
+                prepare(&engine, &parsed.input, &limits, parsed.seed, draws, parsed.up)?;
             Ok(Prepared { conditioning, decode: parsed.decode, format: parsed.format })
         })
         .await

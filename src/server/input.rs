@@ -8,7 +8,7 @@ use utoipa::{IntoParams, ToSchema};
 
 use crate::candidates::{MAX_CANDIDATES, MAX_WELD_RADIUS};
 use crate::engine::DecodeOptions;
-use crate::mesh::{Format, MAX_FIT_ROUNDS, Mesh, ReadLimits, read_mesh};
+use crate::mesh::{Format, MAX_FIT_ROUNDS, Mesh, ReadLimits, UpAxis, read_mesh};
 use crate::model::{DEFAULT_TEMPERATURE, MAX_FACE_BEAM, SamplingParams};
 
 use super::error::ApiError;
@@ -60,6 +60,11 @@ pub struct ReconstructOptions {
     /// glb (default), obj, ply or stl.
     #[param(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
+    /// The input's up axis: y (default, glTF's), z (Blender, CAD, most scans and 3D
+    /// printing), x, or one of them negated (-y: upside down). The models learnt shapes
+    /// standing on +y; the input is turned onto it and the mesh comes back turned as sent.
+    #[param(schema_with = up_schema)]
+    pub up: Option<String>,
 }
 
 /// `POST /reconstruct` with `Content-Type: application/json`.
@@ -96,6 +101,8 @@ pub struct PointsBody {
     pub seed: Option<u64>,
     #[schema(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
+    #[schema(schema_with = up_schema)]
+    pub up: Option<String>,
 }
 
 /// A seed: any u64 (utoipa's int64 would stop at i64::MAX).
@@ -104,6 +111,14 @@ pub(super) fn seed_schema() -> utoipa::openapi::Object {
         .schema_type(utoipa::openapi::Type::Integer)
         .minimum(Some(0))
         .maximum(Some(u64::MAX))
+        .build()
+}
+
+/// The `up` option: an axis by name.
+fn up_schema() -> utoipa::openapi::Object {
+    utoipa::openapi::ObjectBuilder::new()
+        .schema_type(utoipa::openapi::Type::String)
+        .enum_values(Some(UpAxis::NAMES))
         .build()
 }
 
@@ -131,6 +146,8 @@ pub struct ParsedRequest {
     pub decode: DecodeOptions,
     pub seed: u64,
     pub format: Format,
+    /// The input's up axis.
+    pub up: UpAxis,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -178,7 +195,8 @@ impl ReconstructOptions {
             )));
         }
         decode.weld_radius = self.weld_radius;
-        Ok(ParsedRequest { input, decode, seed, format })
+        let up = self.up.as_deref().map(str::parse).transpose().map_err(ApiError::invalid)?;
+        Ok(ParsedRequest { input, decode, seed, format, up: up.unwrap_or_default() })
     }
 }
 
@@ -327,6 +345,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         weld_radius: b.weld_radius,
         seed: b.seed,
         format: b.format,
+        up: b.up,
     };
     options.checked(mesh)
 }

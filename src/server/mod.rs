@@ -34,7 +34,7 @@ use tokio_stream::wrappers::TcpListenerStream;
 
 use crate::diffusion::{Framing, ImageOptions};
 use crate::engine::{Conditioning, Engine, EngineError, PreparedPoints, Stage};
-use crate::mesh::Mesh;
+use crate::mesh::{Mesh, UpAxis};
 use crate::model::DEFAULT_TEMPERATURE;
 
 pub use auth::{ApiKeys, AuthConfig, AuthError, DEFAULT_OPEN_PATHS, OpenPath};
@@ -141,18 +141,20 @@ pub(crate) fn no_image_model() -> ApiError {
     ))
 }
 
-/// The encoder's input for a mesh or point cloud in the caller's coordinates, a draw for each
-/// of its `candidates`, and the reference points they are judged against. CPU work.
+/// The encoder's input for a mesh or point cloud in the caller's coordinates (`up` their up
+/// axis), a draw for each of its `candidates`, and the reference points they are judged
+/// against. CPU work.
 pub(crate) fn prepare(
     engine: &Engine,
     input: &Mesh,
     limits: &InputLimits,
     seed: u64,
     candidates: usize,
+    up: UpAxis,
 ) -> Result<Conditioning, ApiError> {
     let cfg = engine.model_config();
     let points = engine.metrics().time(Stage::Prepare, || {
-        PreparedPoints::from_mesh(input, cfg, limits.reference_points, seed, candidates)
+        PreparedPoints::from_mesh(input, cfg, limits.reference_points, seed, candidates, up)
     })?;
     Ok(Conditioning::Points(points))
 }

@@ -8,7 +8,7 @@ import { View } from './view.js';
 const $ = (id) => document.getElementById(id);
 const view = new View($('canvas'));
 const OPTIONS = {
-  points: ['max_faces', 'temperature', 'seed', 'candidates'],
+  points: ['max_faces', 'temperature', 'seed', 'candidates', 'up'],
   image: ['max_faces', 'temperature', 'seed', 'steps', 'guidance', 'framing'],
 };
 
@@ -182,7 +182,11 @@ document.addEventListener('drop', (event) => {
   if (file) choose(file);
 });
 for (const button of document.querySelectorAll('[data-example]')) {
-  button.addEventListener('click', () => loadExample(button.dataset.example));
+  button.addEventListener('click', () => {
+    // Each example says which of its axes is up (the pine tree's source puts z up).
+    $('up').value = button.dataset.up ?? '';
+    loadExample(button.dataset.example);
+  });
 }
 $('run').addEventListener('click', () => run());
 $('cancel').addEventListener('click', () => running?.abort());

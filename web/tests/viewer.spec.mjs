@@ -178,13 +178,14 @@ try {
   assert(result.dropped_mesh_faces > 0);
   await shoot('dropped-mesh');
 
-  step('a GLB made small for the web: meshopt previews, Draco goes as it is');
+  step('a GLB made small for the web: meshopt previews, Draco goes as it is, with z up');
   const webGltf = new URL('../../tests/data/web-gltf/', import.meta.url);
+  await page.select('#up', 'z');
   for (const [name, preview] of [['pine-tree-meshopt.glb', ': 4096 points drawn on its surface'], ['pine-tree-draco.glb', '']]) {
     // Sent once the page has tried to read it, and the request sets the page running first.
     const answered = page.waitForResponse((r) => r.url().includes('/reconstruct'));
     await fileInput.uploadFile(new URL(name, webGltf).pathname);
-    await answered;
+    assert.match((await answered).url(), /[?&]up=z(&|$)/);
     await page.waitForFunction(() => document.body.dataset.state !== 'running');
     assert.equal(await state(), 'done', `${name}: ${await text('#error')}`);
     assert.equal(await text('#input-name'), `${name} (${(statSync(new URL(name, webGltf)).size / 1024).toFixed(1)} KB)${preview}`);
@@ -192,6 +193,16 @@ try {
     assert(result[`${name}_faces`] > 0, `${name}: no faces`);
   }
   await shoot('web-gltf');
+  await page.select('#up', '');
+  // The pine tree example knows its source puts z up.
+  const example = page.waitForResponse((r) => r.url().includes('/reconstruct'));
+  await page.click('[data-example="pine-tree.ply"]');
+  assert.match((await example).url(), /[?&]up=z(&|$)/);
+  await page.waitForFunction(() => document.body.dataset.state !== 'running');
+  assert.equal(await state(), 'done', await text('#error'));
+  assert.equal(await page.$eval('#up', (e) => e.value), 'z');
+  await shoot('pine-tree-example');
+  await page.select('#up', '');
 
   step('an option past the server\'s limit shows the API\'s message');
   const tooMany = await fetch(`${base}/reconstruct?max_faces=999999`, {
