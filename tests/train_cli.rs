@@ -99,7 +99,8 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert!(!same(&init_run.join("checkpoint"), &other_seed.join("checkpoint")));
 
     // A frozen encoder keeps the init's encoder weights bit for bit while the rest learns.
-    // (It also turns every sample by a quarter turn, which its train.json records.)
+    // (It also turns every sample by a quarter turn and stands a kit's meshes on y, which its
+    // train.json records.)
     let frozen = tmp.path().join("frozen");
     // (And weights its procedural mix, and spreads its points, which train.json records too:
     // the init drew them independently, which does not change what its weights fit.)
@@ -111,6 +112,8 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
         "box=3,l-extrusion=0",
         "--point-oversampling",
         "4",
+        "--up-axis",
+        "kenney-road=z",
     ];
     run_with(&frozen, data.as_deref(), 4, 4, Start::Init(&init), &extra);
     let config: serde_json::Value =
@@ -120,6 +123,7 @@ fn trains_checkpoints_resumes_exactly_exports_and_plots() {
     assert_eq!((&mix["Box"], &mix["LExtrusion"]), (&3.into(), &0.into()));
     assert_eq!(config["batch"]["sample"]["point_oversampling"], 4);
     assert_eq!(config["model"]["point_oversampling"], 4);
+    assert_eq!(config["up_axes"], serde_json::json!([{"prefix": "kenney-road", "up": "z"}]));
     // The f32 export passes the default shard size: `--init` read it from shards.
     let (before, after) = (weights(&init), weights(&frozen.join("checkpoint")));
     let unchanged = |name: &String| largest_difference(&before[name], &after[name]) == 0.0;

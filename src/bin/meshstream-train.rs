@@ -17,7 +17,7 @@ use meshstream::train::batch::{BatchConfig, CurriculumStage, SampleConfig};
 use meshstream::train::bench::{StepPhases, bench_train_step};
 use meshstream::train::bench_ops::bench_ops;
 use meshstream::train::checkpoint::{RunDir, average_dir, export, parse_shard_size};
-use meshstream::train::dataset::load_folder;
+use meshstream::train::dataset::{UpAxes, UpRule, load_folder};
 use meshstream::train::device_check::check_device;
 use meshstream::train::dit::DitTrainConfig;
 use meshstream::train::dit::cache::{AutoencoderId, CacheSpec};
@@ -161,6 +161,25 @@ enum WeightType {
     F32,
 }
 
+/// The training meshes, for `ae` and `dit`.
+#[derive(Args, Debug, Clone)]
+struct DataArgs {
+    /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
+    /// run trains on procedural shapes only.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    #[arg(long, default_value = "train")]
+    split: String,
+    #[arg(long, default_value = "dev")]
+    eval_split: String,
+    /// The folder's files whose source puts another axis than y up, by name prefix, as
+    /// PREFIX=AXIS (repeatable): they are stood on y when loaded, as training turns meshes
+    /// about y only. The low-poly set's Kenney kits stand on z: `--up-axis kenney-road=z`,
+    /// and so on (docs/decisions.md, "The caller says which axis is up").
+    #[arg(long = "up-axis", value_name = "PREFIX=AXIS")]
+    up_axes: Vec<UpRule>,
+}
+
 #[derive(Args)]
 struct AeArgs {
     /// Run folder: train.json, checkpoint/, best/, log.jsonl.
@@ -200,14 +219,8 @@ struct AeArgs {
     /// weights' own). Saved in the model's config, so that inference draws them the same way.
     #[arg(long)]
     point_oversampling: Option<usize>,
-    /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
-    /// run trains on procedural shapes only.
-    #[arg(long)]
-    data: Option<PathBuf>,
-    #[arg(long, default_value = "train")]
-    split: String,
-    #[arg(long, default_value = "dev")]
-    eval_split: String,
+    #[command(flatten)]
+    data: DataArgs,
     /// Length of the run: the learning-rate schedule spans this many steps.
     #[arg(long, default_value_t = 10_000)]
     steps: u64,
@@ -359,14 +372,8 @@ struct DitArgs {
     /// Override the preset's number of DiT blocks.
     #[arg(long)]
     layers: Option<usize>,
-    /// Folder of meshes; with a manifest.csv its split column picks the rows. Without it the
-    /// run trains on procedural shapes only.
-    #[arg(long)]
-    data: Option<PathBuf>,
-    #[arg(long, default_value = "train")]
-    split: String,
-    #[arg(long, default_value = "dev")]
-    eval_split: String,
+    #[command(flatten)]
+    data: DataArgs,
     /// Procedural shapes added to the training meshes.
     #[arg(long, default_value_t = 256)]
     procedural: usize,
@@ -694,7 +701,7 @@ fn bench_command(
     let folder = match data {
         Some(dir) => {
             let q = Quantizer::new(u16::try_from(cfg.quant_levels).context("quant_levels")?)?;
-            let folder = load_folder(&dir, Some("train"), cfg.max_faces, q)
+            let folder = load_folder(&dir, Some("train"), cfg.max_faces, q, &UpAxes::default())
                 .with_context(|| format!("loading {}", dir.display()))?;
             Some(std::sync::Arc::new(folder))
         }
@@ -907,8 +914,9 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
     let max_faces = args.eval_max_faces.unwrap_or(autoencoder.config.max_faces);
     Ok(DitTrainConfig {
         cache: CacheSpec {
-            data: args.data.clone(),
-            split: args.split.clone(),
+            data: args.data.data.clone(),
+            split: args.data.split.clone(),
+            up_axes: UpAxes(args.data.up_axes.clone()),
             procedural: args.procedural,
             augmentations: args.augmentations,
             views: args.views,
@@ -927,7 +935,7 @@ fn dit_config_from_args(args: &DitArgs) -> anyhow::Result<DitTrainConfig> {
         },
         model,
         autoencoder: ae_dir,
-        eval_split: args.eval_split.clone(),
+        eval_split: args.data.eval_split.clone(),
         eval_folder_meshes: args.eval_meshes,
         eval_procedural: args.eval_procedural,
         eval: DitEvalOptions {
@@ -992,9 +1000,10 @@ fn config_from_args(args: &AeArgs) -> anyhow::Result<TrainConfig> {
         scan_noise: args.scan_noise,
     };
     Ok(TrainConfig {
-        data: args.data.clone(),
-        train_split: args.split.clone(),
-        eval_split: args.eval_split.clone(),
+        data: args.data.data.clone(),
+        train_split: args.data.split.clone(),
+        up_axes: UpAxes(args.data.up_axes.clone()),
+        eval_split: args.data.eval_split.clone(),
         batch: BatchConfig {
             sample: SampleConfig::for_model(&model, augment)?,
             faces_per_batch: args.batch_faces,

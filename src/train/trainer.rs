@@ -22,7 +22,7 @@ use super::TrainError;
 use super::average::WeightAverage;
 use super::batch::{BatchConfig, BatchSource, Prefetcher};
 use super::checkpoint::{self, RunDir, TrainState};
-use super::dataset::{FolderData, load_folder};
+use super::dataset::{FolderData, UpAxes, load_folder};
 use super::evaluate::{EvalReport, EvalSet, evaluate};
 use super::log::{LogRecord, LogWriter, StepTiming};
 use super::optim::{OptimConfig, Optimizer, default_rule};
@@ -37,6 +37,10 @@ pub struct TrainConfig {
     pub data: Option<PathBuf>,
     pub train_split: String,
     pub eval_split: String,
+    /// The folder's meshes that stand on another axis than y, stood on y when loaded. Runs
+    /// from before it had none.
+    #[serde(default, skip_serializing_if = "UpAxes::is_empty")]
+    pub up_axes: UpAxes,
     pub batch: BatchConfig,
     pub optim: OptimConfig,
     #[serde(flatten)]
@@ -167,11 +171,11 @@ impl Trainer {
             u16::try_from(cfg.model.quant_levels)
                 .map_err(|_| TrainError::Config("quant_levels too large".into()))?,
         )?;
-        let max_faces = cfg.model.max_faces;
+        let (max_faces, up) = (cfg.model.max_faces, &cfg.up_axes);
         let (train_data, eval_data) = match &cfg.data {
             Some(path) => (
-                Some(Arc::new(load_folder(path, Some(&cfg.train_split), max_faces, q)?)),
-                Some(load_folder(path, Some(&cfg.eval_split), max_faces, q)?),
+                Some(Arc::new(load_folder(path, Some(&cfg.train_split), max_faces, q, up)?)),
+                Some(load_folder(path, Some(&cfg.eval_split), max_faces, q, up)?),
             ),
             None => (None, None),
         };

@@ -24,7 +24,7 @@ use crate::tokenize::Quantizer;
 use super::super::TrainError;
 use super::super::augment::{AugmentConfig, augment};
 use super::super::batch::{SampleConfig, TrainingSample, prepare_sample};
-use super::super::dataset::load_folder;
+use super::super::dataset::{UpAxes, load_folder};
 use super::super::evaluate::example;
 use super::super::procedural::ProceduralShapes;
 use super::views::{ViewConfig, render_rgb};
@@ -70,6 +70,10 @@ pub struct CacheSpec {
     /// Folder of meshes (its `split` rows with a manifest); none: procedural shapes only.
     pub data: Option<PathBuf>,
     pub split: String,
+    /// The folder's meshes that stand on another axis than y, stood on y when loaded. Caches
+    /// from before it had none.
+    #[serde(default, skip_serializing_if = "UpAxes::is_empty")]
+    pub up_axes: UpAxes,
     /// Procedural shapes added to the folder's meshes (drawn from `seed`).
     pub procedural: usize,
     /// Augmented copies per mesh.
@@ -294,7 +298,7 @@ fn source_meshes(spec: &CacheSpec) -> Result<(Vec<(String, Mesh)>, CacheSkips), 
     let mut sources = Vec::new();
     let mut skipped = CacheSkips::default();
     if let Some(dir) = &spec.data {
-        let folder = load_folder(dir, Some(&spec.split), ae.max_faces, q)?;
+        let folder = load_folder(dir, Some(&spec.split), ae.max_faces, q, &spec.up_axes)?;
         skipped.unreadable = folder.skipped.unreadable.len();
         skipped.no_faces = folder.skipped.no_faces;
         skipped.over_face_limit = folder.skipped.over_face_limit;
@@ -361,6 +365,7 @@ mod tests {
             autoencoder: AutoencoderId::of(&dir).unwrap(),
             data: None,
             split: "train".into(),
+            up_axes: UpAxes::default(),
             procedural: 3,
             augmentations: 2,
             views: 2,

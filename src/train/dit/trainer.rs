@@ -148,7 +148,7 @@ impl DitTrainer {
         let eval_folder = match &cfg.cache.data {
             Some(path) if cfg.eval_folder_meshes > 0 => {
                 let q = Quantizer::new(u16::try_from(ae.quant_levels).unwrap_or(u16::MAX))?;
-                Some(load_folder(path, Some(&cfg.eval_split), ae.max_faces, q)?)
+                Some(load_folder(path, Some(&cfg.eval_split), ae.max_faces, q, &cfg.cache.up_axes)?)
             }
             _ => None,
         };
