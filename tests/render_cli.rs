@@ -91,3 +91,20 @@ fn render_draws_point_clouds_and_rejects_bad_requests() {
     fails_with(&["render", path(&cloud), "-o", path(&png), "--views", "0"], "views");
     fails_with(&["render", path(&cloud), "-o", path(&png), "--fov", "200"], "field of view");
 }
+
+#[test]
+fn a_z_up_mesh_drawn_with_up_z_looks_as_its_y_up_twin() {
+    let dir = tempfile::tempdir().unwrap();
+    let standing = dir.path().join("standing.obj");
+    let lying = dir.path().join("lying.obj");
+    write_mesh_file(&cuboid([1.0, 4.0, 2.0]), &standing, None).unwrap();
+    write_mesh_file(&cuboid([1.0, 2.0, 4.0]), &lying, None).unwrap();
+    let [a, b, c] = ["standing.png", "lying.png", "lying-as-is.png"].map(|n| dir.path().join(n));
+    let small = ["--views", "2", "--size", "48"];
+    render_ok(&[&["render", path(&standing), "-o", path(&a)][..], &small].concat());
+    render_ok(&[&["render", path(&lying), "-o", path(&b), "--up", "z"][..], &small].concat());
+    render_ok(&[&["render", path(&lying), "-o", path(&c)][..], &small].concat());
+    let pixels = |p: &Path| image::open(p).unwrap().to_rgb8().into_raw();
+    assert_eq!(pixels(&a), pixels(&b));
+    assert_ne!(pixels(&a), pixels(&c));
+}

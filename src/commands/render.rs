@@ -3,7 +3,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use clap::Args;
 use image::ImageFormat;
-use meshstream::mesh::Normalization;
+use meshstream::mesh::{Normalization, UpAxis};
 use meshstream::render::{Camera, Coloring, Light, LightFrame, RenderOptions, render_grid};
 
 use super::load_mesh;
@@ -44,6 +44,10 @@ pub struct RenderArgs {
     /// A flat colour per part (connected component of faces sharing vertices).
     #[arg(long)]
     color_parts: bool,
+    /// The mesh's up axis (y, z, x, or one of them negated), drawn up: `--up z` stands a mesh
+    /// from Blender, CAD or `reconstruct --up z` upright.
+    #[arg(long, default_value = "y")]
+    up: UpAxis,
 }
 
 pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
@@ -51,6 +55,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let mesh = load_mesh(&args.mesh)?;
     let mesh = Normalization::fit(&mesh.vertices)
         .with_context(|| format!("normalizing {}", args.mesh.display()))?
+        .with_up(args.up)
         .apply_mesh(&mesh);
     let (width, height) = args.size;
     let distance = args.distance.unwrap_or_else(|| {
