@@ -38,6 +38,8 @@ async function choose(file) {
   const thumbnail = $('thumbnail');
   URL.revokeObjectURL(thumbnail.src);
   thumbnail.hidden = input.kind !== 'image';
+  // An image's mesh comes in the model's frame, y up.
+  view.setUp(input.kind === 'points' ? $('up').value : '');
   if (input.kind === 'image') {
     thumbnail.src = URL.createObjectURL(file);
     view.showInput(null);
@@ -189,6 +191,9 @@ for (const button of document.querySelectorAll('[data-example]')) {
   });
 }
 $('run').addEventListener('click', () => run());
+$('up').addEventListener('change', () => {
+  if (input?.kind !== 'image') view.setUp($('up').value);
+});
 $('cancel').addEventListener('click', () => running?.abort());
 $('wireframe').addEventListener('change', () => view.setWireframe($('wireframe').checked));
 $('show-input').addEventListener('change', () => view.setInputVisible($('show-input').checked));

@@ -1,10 +1,20 @@
 // The 3D view: the streamed faces (flat shaded, an optional wireframe over them), the input
-// points faint beside them, and orbit/zoom/pan. It renders only when something changed.
+// points faint beside them, and orbit/zoom/pan, with the input's up axis up. It renders only
+// when something changed.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 export const BACKGROUND = 0x20242b;
+
+/** The turn (Euler angles about x, y, z) that stands an input with this axis up on +y. */
+const STAND_UP = {
+  z: [-Math.PI / 2, 0, 0],
+  '-z': [Math.PI / 2, 0, 0],
+  x: [0, 0, Math.PI / 2],
+  '-x': [0, 0, -Math.PI / 2],
+  '-y': [Math.PI, 0, 0],
+};
 
 export class View {
   constructor(canvas) {
@@ -39,7 +49,10 @@ export class View {
       new THREE.BufferGeometry(),
       new THREE.PointsMaterial({ color: 0xaab4c8, size: 2, sizeAttenuation: false, transparent: true, opacity: 0.45 }),
     );
-    this.scene.add(this.surface, this.wireframe, this.points);
+    // Faces and points stay in the caller's coordinates (downloads read them as they are);
+    // their group is turned to show the caller's up axis up.
+    this.content = new THREE.Group().add(this.surface, this.wireframe, this.points);
+    this.scene.add(this.content);
     this.frame(new THREE.Sphere(new THREE.Vector3(), 1.5));
 
     new ResizeObserver(() => this.resize()).observe(canvas);
@@ -53,11 +66,22 @@ export class View {
     if (positions) {
       this.points.geometry.setAttribute('position', new THREE.BufferAttribute(positions, 3));
       this.points.geometry.computeBoundingSphere();
-      this.frame(this.points.geometry.boundingSphere);
-    } else {
-      // An image's mesh comes in the model's frame, centred in [-1, 1].
-      this.frame(new THREE.Sphere(new THREE.Vector3(), Math.sqrt(3)));
     }
+    this.frameInput();
+  }
+
+  /** Turns the view so that the input's `axis` (y, z, x or one negated; '' is y) is up. */
+  setUp(axis) {
+    this.content.rotation.set(...(STAND_UP[axis] ?? [0, 0, 0]));
+    this.content.updateMatrixWorld(true);
+    this.frameInput();
+  }
+
+  frameInput() {
+    const sphere = this.points.geometry.boundingSphere
+      // An image's mesh comes in the model's frame, centred in [-1, 1].
+      ?? new THREE.Sphere(new THREE.Vector3(), Math.sqrt(3));
+    this.frame(sphere.clone().applyMatrix4(this.content.matrixWorld));
     this.redraw();
   }
 

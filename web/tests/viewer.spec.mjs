@@ -70,6 +70,34 @@ try {
   const fill = (selector, value) => page.locator(selector).fill(value);
   const state = () => attribute('body', 'data-state');
   const faceCount = async () => Number(await text('#face-count'));
+  // What the canvas shows: the share of its pixels off the background, and their extent.
+  const drawn = () => page.evaluate(() => {
+    const canvas = document.getElementById('canvas');
+    const copy = Object.assign(document.createElement('canvas'), { width: canvas.width, height: canvas.height });
+    const context = copy.getContext('2d');
+    context.drawImage(canvas, 0, 0);
+    const { data } = context.getImageData(0, 0, copy.width, copy.height);
+    const background = [0x20, 0x24, 0x2b];
+    let differing = 0;
+    const box = { left: Infinity, right: -Infinity, top: Infinity, bottom: -Infinity };
+    for (let i = 0; i < data.length; i += 4) {
+      const d = Math.abs(data[i] - background[0]) + Math.abs(data[i + 1] - background[1])
+        + Math.abs(data[i + 2] - background[2]);
+      if (d > 30) {
+        differing++;
+        const [x, y] = [(i / 4) % copy.width, Math.floor(i / 4 / copy.width)];
+        Object.assign(box, {
+          left: Math.min(box.left, x), right: Math.max(box.right, x),
+          top: Math.min(box.top, y), bottom: Math.max(box.bottom, y),
+        });
+      }
+    }
+    return {
+      fraction: differing / (data.length / 4),
+      width: Math.max(0, box.right - box.left),
+      height: Math.max(0, box.bottom - box.top),
+    };
+  });
   const running = async () => {
     const text = await (await fetch(`${base}/metrics`)).text();
     const line = text.split('\n').find((l) => l.startsWith('meshstream_running_sequences '));
@@ -121,21 +149,7 @@ try {
   await shoot('done');
 
   step('the canvas shows the faces');
-  result.lit_fraction = await page.evaluate(() => {
-    const canvas = document.getElementById('canvas');
-    const copy = Object.assign(document.createElement('canvas'), { width: canvas.width, height: canvas.height });
-    const context = copy.getContext('2d');
-    context.drawImage(canvas, 0, 0);
-    const { data } = context.getImageData(0, 0, copy.width, copy.height);
-    const background = [0x20, 0x24, 0x2b];
-    let differing = 0;
-    for (let i = 0; i < data.length; i += 4) {
-      const d = Math.abs(data[i] - background[0]) + Math.abs(data[i + 1] - background[1])
-        + Math.abs(data[i + 2] - background[2]);
-      if (d > 30) differing++;
-    }
-    return differing / (data.length / 4);
-  });
+  result.lit_fraction = (await drawn()).fraction;
   assert(result.lit_fraction > 0.01, `the canvas is blank: ${result.lit_fraction} of its pixels differ`);
   await page.click('#wireframe');
   assert(await page.$eval('#wireframe', (e) => e.checked));
@@ -201,6 +215,9 @@ try {
   await page.waitForFunction(() => document.body.dataset.state !== 'running');
   assert.equal(await state(), 'done', await text('#error'));
   assert.equal(await page.$eval('#up', (e) => e.value), 'z');
+  // Shown standing: the tree (its points with the faces) is taller than wide on the canvas.
+  const tree = await drawn();
+  assert(tree.height > 1.5 * tree.width, `the tree does not stand: ${JSON.stringify(tree)}`);
   await shoot('pine-tree-example');
   await page.select('#up', '');
 
