@@ -62,8 +62,8 @@ pub struct ReconstructArgs {
     #[arg(long, default_value_t = Quantize::F32)]
     quantize: Quantize,
     /// The input's up axis: y (glTF's), z (Blender, CAD, most scans), x, or one of them
-    /// negated. The model learnt shapes standing on +y: the input is turned onto it, and the
-    /// mesh written turned back.
+    /// negated. The model's training shapes mostly stand on +y: the input is turned onto it,
+    /// and the mesh written turned back.
     #[arg(long, default_value = "y")]
     up: UpAxis,
 }

@@ -2,11 +2,11 @@ use std::str::FromStr;
 
 use super::{Mesh, MeshError, bounds};
 
-/// Which of the caller's axes points up. The models learnt shapes standing on +y (glTF's
-/// convention, and the training data's); many tools (Blender, CAD, 3D printing, most scans)
-/// put +z up, and a shape lying on its side comes back as clutter. Turning the input so that
-/// its up axis is +y, and the result back, costs nothing: each turn swaps and negates
-/// coordinates, exactly.
+/// Which of the caller's axes points up. The models' training shapes mostly stand on +y
+/// (glTF's convention; the data set's Kenney kits lie, see `docs/decisions.md`, "The caller
+/// says which axis is up"); many tools (Blender, CAD, 3D printing, most scans) put +z up, and
+/// some shapes sent lying come back as clutter. Turning the input so that its up axis is +y,
+/// and the result back, costs nothing: each turn swaps and negates coordinates, exactly.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum UpAxis {
     #[serde(rename = "x")]

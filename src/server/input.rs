@@ -61,8 +61,8 @@ pub struct ReconstructOptions {
     #[param(value_type = Option<MeshFormat>)]
     pub format: Option<String>,
     /// The input's up axis: y (default, glTF's), z (Blender, CAD, most scans and 3D
-    /// printing), x, or one of them negated (-y: upside down). The models learnt shapes
-    /// standing on +y; the input is turned onto it and the mesh comes back turned as sent.
+    /// printing), x, or one of them negated (-y: upside down). The model's training shapes
+    /// mostly stand on +y; the input is turned onto it and the mesh comes back turned as sent.
     #[param(schema_with = up_schema)]
     pub up: Option<String>,
 }
