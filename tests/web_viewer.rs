@@ -30,6 +30,10 @@ async fn the_page_and_its_files_are_served_and_no_ui_turns_them_off() {
     let example = get("/ui/examples/mug-points.ply").await.unwrap().bytes().await.unwrap();
     let points = read_mesh(&example, Format::Ply, &ReadLimits::default()).unwrap();
     assert_eq!(points.vertices.len(), 2048);
+    // The Draco decoder, as WebAssembly (browsers compile it streaming only with this type).
+    let wasm = get("/ui/draco/draco_decoder.wasm").await.unwrap();
+    assert_eq!(wasm.headers()["content-type"], "application/wasm");
+    assert!(wasm.bytes().await.unwrap().starts_with(b"\0asm"));
     assert_eq!(get("/ui/nothing.js").await.unwrap().status(), 404);
     drop(server);
 

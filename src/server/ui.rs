@@ -1,6 +1,7 @@
 //! The viewer page at `GET /` and the files it loads under `/ui/`: web/src (plain ES modules,
-//! bundled with three.js by `npm run build` into the committed web/dist/app.js), embedded in
-//! the binary so that serving it needs no files on disk and no network.
+//! bundled with three.js by `npm run build` into the committed web/dist/app.js, beside
+//! three.js's Draco decoder in web/dist/draco/), embedded in the binary so that serving it
+//! needs no files on disk and no network.
 
 use axum::Router;
 use axum::extract::Path;
@@ -32,6 +33,16 @@ const FILES: &[(&str, &str, &[u8])] = &[
         include_bytes!("../../web/examples/pine-tree.ply"),
     ),
     ("examples/chest.png", "image/png", include_bytes!("../../web/examples/chest.png")),
+    (
+        "draco/draco_wasm_wrapper.js",
+        "text/javascript; charset=utf-8",
+        include_bytes!("../../web/dist/draco/draco_wasm_wrapper.js"),
+    ),
+    (
+        "draco/draco_decoder.wasm",
+        "application/wasm",
+        include_bytes!("../../web/dist/draco/draco_decoder.wasm"),
+    ),
 ];
 
 /// The page's routes, for a router that serves the API beside them.

@@ -2,6 +2,7 @@
 // beside the result) or an image (sent to /generate, shown as a thumbnail).
 
 import * as THREE from 'three';
+import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
@@ -67,13 +68,21 @@ async function load(bytes, extension) {
     case 'obj':
       return new OBJLoader().parse(new TextDecoder().decode(bytes));
     case 'glb':
-      // Quantized and meshopt-compressed files preview too; a Draco-compressed one, whose
-      // decoder is a separate download, goes to the server without a preview.
-      return (await new GLTFLoader().setMeshoptDecoder(MeshoptDecoder).parseAsync(bytes, ''))
-        .scene;
+      // Quantized, meshopt- and Draco-compressed files preview too; Draco's decoder (served
+      // under /ui/draco/) loads only when a file needs it.
+      return (await gltfLoader().parseAsync(bytes, '')).scene;
     default:
       return null;
   }
+}
+
+let loader = null;
+
+function gltfLoader() {
+  loader ??= new GLTFLoader()
+    .setMeshoptDecoder(MeshoptDecoder)
+    .setDRACOLoader(new DRACOLoader().setDecoderPath('/ui/draco/'));
+  return loader;
 }
 
 /** Every mesh's surface points and every point cloud's points, in world coordinates. */
