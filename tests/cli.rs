@@ -197,6 +197,11 @@ fn reconstruct_writes_a_mesh_in_the_inputs_coordinates() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mesh = read_mesh_file(&out, &ReadLimits::default()).unwrap();
     assert!(!mesh.faces.is_empty() && mesh.faces.len() <= 30);
+    // What it wrote, and how it is built, as counted on the file here.
+    let said = String::from_utf8_lossy(&o.stderr);
+    let built = meshstream::metrics::topology(&mesh);
+    let parts = if built.parts == 1 { "1 part".into() } else { format!("{} parts", built.parts) };
+    assert!(said.contains(&format!("; {parts}, ")) && said.contains(", input CD 0."), "{said}");
     let (lo, hi) = mesh.bounds().unwrap();
     for a in 0..3 {
         // Within the input's bounding cube (half the longest side, 5, around its centre),

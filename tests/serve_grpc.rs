@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use common::{Server, points_json, points_request, shape};
 use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
+use meshstream::metrics::topology;
 use meshstream::server::proto::mesh_generator_client::MeshGeneratorClient;
 use meshstream::server::proto::{
     MeshFile, Options, PointCloud, ReconstructRequest, reconstruct_request, reconstruct_response,
@@ -45,6 +46,15 @@ async fn the_stream_delivers_faces_incrementally_equal_to_the_http_mesh() {
         reqwest::Client::new().post(server.url("/reconstruct")).json(&body).send().await.unwrap();
     let mesh = read_mesh(&r.bytes().await.unwrap(), Format::Gltf, &ReadLimits::default()).unwrap();
     assert_eq!(faces.len(), mesh.faces.len());
+    // The stream's answer says how it is built, as counted on the same mesh here.
+    let quality = stats.quality.expect("the answer measured");
+    let built = topology(&mesh);
+    assert_eq!(
+        [quality.edges, quality.boundary_edges, quality.non_manifold_edges, quality.parts],
+        [built.edges, built.boundary_edges, built.non_manifold_edges, built.parts]
+            .map(|n| n as u32)
+    );
+    assert!(quality.input_chamfer.is_some_and(|d| d > 0.0 && d < 2.0), "{quality:?}");
     for (i, f) in faces.iter().enumerate() {
         assert_eq!(f.index as usize, i);
         let corners = mesh.faces[i].map(|v| mesh.vertices[v as usize]);

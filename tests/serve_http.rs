@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use common::{Server, points_json, shape, stream_through};
 use futures_util::StreamExt;
 use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
-use meshstream::metrics::point_set_distances;
+use meshstream::metrics::{point_set_distances, topology};
 use serde_json::{Value, json};
 
 fn client() -> reqwest::Client {
@@ -173,11 +173,29 @@ async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
     // best of several, welded and fitted to the points.
     let as_decoded = json!({"max_faces": 200, "candidates": 1, "weld_radius": 0, "fit_rounds": 0});
     let body = points_json(&shape(), as_decoded);
-    let (_, glb) = reconstruct_glb(&server, &body).await;
+    let (headers, glb) = reconstruct_glb(&server, &body).await;
     let mesh = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    // The answer says how it is built, as counted on the file here, and how far it lies from
+    // the points.
+    let header = |name: &str| headers[name].to_str().unwrap().to_string();
+    let built = topology(&mesh);
+    assert_eq!(header("x-meshstream-edges"), built.edges.to_string());
+    assert_eq!(header("x-meshstream-boundary-edges"), built.boundary_edges.to_string());
+    assert_eq!(header("x-meshstream-non-manifold-edges"), built.non_manifold_edges.to_string());
+    assert_eq!(header("x-meshstream-parts"), built.parts.to_string());
+    let watertight = built.boundary_edges == 0 && built.non_manifold_edges == 0;
+    assert_eq!(header("x-meshstream-watertight"), watertight.to_string());
+    let input_chamfer: f64 = header("x-meshstream-input-chamfer").parse().unwrap();
+    assert!(input_chamfer > 0.0 && input_chamfer < 2.0, "{input_chamfer}");
     for accept in ["text/event-stream", "application/x-ndjson"] {
         let (faces, done) = stream_events(&server, &body, accept).await;
         assert_eq!(done["faces"].as_u64().unwrap() as usize, faces.len(), "{done}");
+        let q = &done["quality"];
+        assert_eq!(q["edges"], built.edges, "{done}");
+        assert_eq!(q["boundary_edges"], built.boundary_edges, "{done}");
+        assert_eq!(q["non_manifold_edges"], built.non_manifold_edges, "{done}");
+        assert_eq!((&q["parts"], &q["watertight"]), (&json!(built.parts), &json!(watertight)));
+        assert!((q["input_chamfer"].as_f64().unwrap() - input_chamfer).abs() < 1e-5, "{done}");
         assert_eq!(faces.len(), mesh.faces.len(), "{accept}");
         for (i, (_, f)) in faces.iter().enumerate() {
             assert_eq!(f["index"], i);

@@ -10,7 +10,7 @@ use meshstream::mesh::{
     input_clouds, primitives, read_mesh, sample_surface, without_folded_faces, without_stray_parts,
     write_mesh,
 };
-use meshstream::metrics::{MetricOptions, mesh_distances};
+use meshstream::metrics::{MeshQuality, MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
 use meshstream::tokenize::{Quantizer, tokenize_mesh};
 
@@ -177,6 +177,14 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         format!("{} faces, each twice", truth.faces.len()),
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.0} faces/s", twice.faces.len() as f64 / t.as_secs_f64()),
+    ]);
+    // What every answer adds to its request: its build and its distance to the input points.
+    let t = time_per_run(budget, || MeshQuality::measure(&truth, Some(&points)));
+    table.add_row([
+        "answer quality (edges, parts, input CD)".to_string(),
+        format!("{} faces, {REFERENCE_POINTS} points", truth.faces.len()),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.0} answers/s", 1.0 / t.as_secs_f64()),
     ]);
     out(&table)?;
     Ok(())

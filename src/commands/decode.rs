@@ -11,6 +11,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use meshstream::candidates::{Ending, best_of, candidate_options};
 use meshstream::mesh::{Format, Mesh, Normalization, write_mesh_file};
+use meshstream::metrics::MeshQuality;
 use meshstream::model::{
     DEFAULT_FACE_BEAM, DEFAULT_TEMPERATURE, FaceModel, FinishReason, GenerateOptions,
     SamplingParams, generate,
@@ -106,22 +107,26 @@ pub fn decode(
 
 /// Writes a decoded mesh (not empty) in the caller's frame, `normalization` inverted, and
 /// reports what it wrote, timed from `start`.
+/// Writes the decoded mesh (normalized frame) in the caller's coordinates and says what it
+/// is: its size, time, and [`MeshQuality`] against the `input` points it was made from.
 pub fn write_decoded(
     (mesh, reason): (Mesh, FinishReason),
     args: &DecodeArgs,
     normalization: Normalization,
+    input: Option<&[[f32; 3]]>,
     start: Instant,
 ) -> anyhow::Result<()> {
     anyhow::ensure!(!mesh.faces.is_empty(), "the model produced no faces ({reason:?})");
+    let seconds = start.elapsed().as_secs_f64();
+    let quality = MeshQuality::measure(&mesh, input);
     // A reconstruction's ending drops faces but keeps their vertices in order.
     let mesh = normalization.invert_mesh(&mesh.without_unused_vertices());
     write(&mesh, &args.output, args.format)?;
     eprintln!(
-        "wrote {}: {} faces, {} vertices in {:.1} s (stopped by {reason:?})",
+        "wrote {}: {} faces, {} vertices in {seconds:.1} s (stopped by {reason:?}); {quality}",
         args.output.display(),
         mesh.faces.len(),
         mesh.vertices.len(),
-        start.elapsed().as_secs_f64()
     );
     Ok(())
 }

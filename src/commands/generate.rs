@@ -93,5 +93,5 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {
         }
         eprintln!("no faces from seed {}: sampling again", args.seed.wrapping_add(attempt - 1));
     };
-    write_decoded(decoded, &args.decode, Normalization::identity(), start)
+    write_decoded(decoded, &args.decode, Normalization::identity(), None, start)
 }

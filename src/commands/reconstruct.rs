@@ -101,5 +101,6 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
     let ending = Ending { weld_radius: args.weld_radius, fit: (fit.rounds > 0).then_some(fit) };
     let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
     let decoded = decode(&model, &latents, &args.decode, Some(from_points), args.seed)?;
-    write_decoded(decoded, &args.decode, normalization, start)
+    let input = Some(&clouds.reference.vertices[..]);
+    write_decoded(decoded, &args.decode, normalization, input, start)
 }

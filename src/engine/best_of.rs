@@ -16,7 +16,7 @@ use crate::mesh::FitOptions;
 use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
-use super::metrics::{Metrics, Stage};
+use super::offload::off_runtime;
 use super::{
     Completed, Conditioning, DecodeOptions, Engine, EngineError, Event, Request, RequestStream,
     StreamedFace,
@@ -125,21 +125,6 @@ pub(super) fn submit(
         let _ = tx.send(event).await;
     });
     Ok(RequestStream::new(request.id, rx))
-}
-
-/// Runs CPU work (fitting and judging a candidate) on rayon's pool, one thread per core, off
-/// the async runtime: however many candidates finish together, they queue there rather than
-/// each taking a thread of their own from the decoding. Its time counts as [`Stage::End`].
-async fn off_runtime<T: Send + 'static>(
-    metrics: &Arc<Metrics>,
-    work: impl FnOnce() -> T + Send + 'static,
-) -> Result<T, EngineError> {
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let metrics = Arc::clone(metrics);
-    rayon::spawn(move || {
-        let _ = tx.send(metrics.time(Stage::End, work));
-    });
-    rx.await.map_err(|_| EngineError::Model("ending a candidate failed".into()))
 }
 
 /// The faces to stream for a candidate as it `ended`: each face's grid cells and its corners

@@ -10,6 +10,8 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 
+use crate::metrics::MeshQuality;
+
 type ByReason = Family<Vec<(&'static str, &'static str)>, Counter>;
 type Seconds = Family<Vec<(&'static str, &'static str)>, Counter<f64, AtomicU64>>;
 
@@ -25,7 +27,8 @@ pub enum Stage {
     Decode,
     /// Diffusion steps of image requests.
     Diffuse,
-    /// Ending candidates: welding, fitting their corners to the input, judging them.
+    /// Ending a request: welding a reconstruction's candidates, fitting their corners to the
+    /// input, judging them; measuring the answer's build and distance to its input.
     End,
 }
 
@@ -62,6 +65,11 @@ pub struct Metrics {
     pub diffusion_batch_size: Histogram,
     /// Image requests sampled again, their mesh having come out empty (`engine::resample`).
     pub image_resamples: Counter,
+    /// What the answers say of themselves ([`MeshQuality`]), through [`Self::observe_answer`]:
+    /// a model or a setting that makes worse meshes shows here before users say so.
+    answer_parts: Histogram,
+    answer_boundary_share: Histogram,
+    answer_input_chamfer: Histogram,
     rejections: ByReason,
     failures: ByReason,
     finished: ByReason,
@@ -84,6 +92,11 @@ impl Default for Metrics {
             diffusion_steps: Counter::default(),
             diffusion_batch_size: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
             image_resamples: Counter::default(),
+            answer_parts: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            answer_boundary_share: Histogram::new([
+                0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 0.9, 1.0,
+            ]),
+            answer_input_chamfer: Histogram::new(exponential_buckets(0.005, 2.0, 10)),
             rejections: ByReason::default(),
             failures: ByReason::default(),
             finished: ByReason::default(),
@@ -131,6 +144,22 @@ impl Default for Metrics {
             "image_resamples",
             "Image requests sampled again from the next seed, their mesh having come out empty",
             m.image_resamples.clone(),
+        );
+        registry.register(
+            "answer_parts",
+            "Connected parts of each answer with faces",
+            m.answer_parts.clone(),
+        );
+        registry.register(
+            "answer_boundary_share",
+            "Share of each answer's edges that one face uses (holes, open borders)",
+            m.answer_boundary_share.clone(),
+        );
+        registry.register(
+            "answer_input_chamfer",
+            "Chamfer distance between each points request's answer and its input points, the \
+             input's longest side spanning 2",
+            m.answer_input_chamfer.clone(),
         );
         registry.register(
             "requests_rejected",
@@ -188,6 +217,18 @@ impl Metrics {
         out
     }
 
+    /// Counts what an answer says of itself; an answer without faces has nothing to say.
+    pub fn observe_answer(&self, quality: &MeshQuality) {
+        if quality.edges == 0 {
+            return;
+        }
+        self.answer_parts.observe(quality.parts as f64);
+        self.answer_boundary_share.observe(quality.boundary_edges as f64 / quality.edges as f64);
+        if let Some(cd) = quality.input_chamfer {
+            self.answer_input_chamfer.observe(cd);
+        }
+    }
+
     /// Counts a decode step of `rows` sequences.
     pub fn observe_step(&self, rows: usize) {
         self.batch_size.observe(rows as f64);
@@ -235,6 +276,22 @@ mod tests {
         assert!(text.contains("meshstream_requests_rejected_total{reason=\"queue_full\"} 1"));
         assert!(text.contains("meshstream_faces_generated_total 7"));
         assert!(text.contains("meshstream_batch_size_count 2"));
+        // Answers: an empty one says nothing, an image's no distance.
+        let answer = |edges, input_chamfer| MeshQuality {
+            edges,
+            boundary_edges: edges / 4,
+            non_manifold_edges: 0,
+            parts: 3,
+            watertight: false,
+            input_chamfer,
+        };
+        m.observe_answer(&answer(0, None));
+        m.observe_answer(&answer(40, Some(0.03)));
+        m.observe_answer(&answer(40, None));
+        let text = m.render();
+        assert!(text.contains("meshstream_answer_parts_count 2"), "{text}");
+        assert!(text.contains("meshstream_answer_boundary_share_bucket{le=\"0.3\"} 2"), "{text}");
+        assert!(text.contains("meshstream_answer_input_chamfer_count 1"), "{text}");
         assert!(text.ends_with("# EOF\n"));
     }
 }

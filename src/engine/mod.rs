@@ -20,6 +20,7 @@ mod encode_stage;
 mod error;
 mod memory;
 mod metrics;
+mod offload;
 mod pools;
 mod request;
 mod resample;
@@ -138,11 +139,21 @@ impl Engine {
         self.shared.config.max_faces_per_request.min(self.model_config.max_faces)
     }
 
-    /// Queues a request; its faces arrive on the returned stream. Refused at once when the
-    /// queue is full or the engine is shutting down. A request for several candidates, or
-    /// welded or fitted, queues one request per candidate, and an image request may be sampled
-    /// again: both need a tokio runtime (see `best_of` and `resample`).
+    /// Queues a request; its faces arrive on the returned stream, then a summary that says
+    /// how the answer is built and how far it lies from a points request's input. Refused at
+    /// once when the queue is full or the engine is shutting down. A request for several
+    /// candidates, or welded or fitted, queues one request per candidate, and an image request
+    /// may be sampled again: both need a tokio runtime (see `best_of` and `resample`).
     pub fn submit(&self, request: Request) -> Result<RequestStream, EngineError> {
+        let input = match &request.conditioning {
+            Conditioning::Points(p) => Some((Arc::clone(&p.reference), p.normalization)),
+            Conditioning::Image(_) => None,
+        };
+        let metrics = Arc::clone(&self.shared.metrics);
+        Ok(self.submit_unmeasured(request)?.measured(input, metrics))
+    }
+
+    fn submit_unmeasured(&self, request: Request) -> Result<RequestStream, EngineError> {
         let options = &request.options;
         let ended = options.fit_rounds.unwrap_or(0) > 0 || options.weld_radius.unwrap_or(0) > 0;
         let image = matches!(request.conditioning, Conditioning::Image(_));

@@ -101,6 +101,7 @@ impl Active {
             decode: now - self.decode_start,
             time_to_first_face: self.first_face.map(|t| t - self.submitted),
             total: now - self.submitted,
+            quality: None,
         }
     }
 

@@ -1,14 +1,19 @@
-//! What a client receives: faces as they are decoded, in its own coordinates, then a summary.
+//! What a client receives: faces as they are decoded, in its own coordinates, then a summary
+//! with what the answer says of itself (its build, its distance to the input).
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::mpsc;
 
-use crate::mesh::Mesh;
+use crate::mesh::{Mesh, Normalization};
+use crate::metrics::MeshQuality;
 use crate::model::FinishReason;
 use crate::tokenize::FaceToken;
 
 use super::EngineError;
+use super::metrics::Metrics;
+use super::offload::off_runtime;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct StreamedFace {
@@ -29,7 +34,12 @@ pub struct Summary {
     pub prepare: Duration,
     pub decode: Duration,
     pub time_to_first_face: Option<Duration>,
+    /// Until the last face was ready: the answer is measured after.
     pub total: Duration,
+    /// The answer's build and distance to its input, measured as the request's stream hands
+    /// it over ([`RequestStream`]); `None` inside the engine (a candidate, an attempt) and when
+    /// it could not be measured.
+    pub quality: Option<MeshQuality>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -62,16 +72,40 @@ pub struct Completed {
 pub struct RequestStream {
     pub id: String,
     events: mpsc::Receiver<Event>,
+    /// Set on the stream a client gets ([`RequestStream::measured`]), not on the engine's own.
+    answer: Option<Answer>,
+}
+
+/// The faces a client has been handed so far, to measure the answer by when it ends.
+struct Answer {
+    corners: Vec<[[f32; 3]; 3]>,
+    /// A points request's input points (normalized frame) and the normalization that takes
+    /// the faces back to that frame.
+    input: Option<(Arc<Mesh>, Normalization)>,
+    metrics: Arc<Metrics>,
 }
 
 impl RequestStream {
     pub(super) fn new(id: String, events: mpsc::Receiver<Event>) -> Self {
-        Self { id, events }
+        Self { id, events, answer: None }
+    }
+
+    /// This stream's summary carries the answer's [`MeshQuality`], measured against `input`
+    /// (a points request's reference points and normalization) when there is one.
+    pub(super) fn measured(
+        mut self,
+        input: Option<(Arc<Mesh>, Normalization)>,
+        metrics: Arc<Metrics>,
+    ) -> Self {
+        self.answer = Some(Answer { corners: Vec::new(), input, metrics });
+        self
     }
 
     /// The next event; `None` after the last one (or if the engine went away).
     pub async fn next(&mut self) -> Option<Event> {
-        self.events.recv().await
+        let mut event = self.events.recv().await?;
+        self.observe(std::slice::from_mut(&mut event)).await;
+        Some(event)
     }
 
     /// Up to `max` events that are ready now, waiting only for the first: lets a slow reader
@@ -79,7 +113,20 @@ impl RequestStream {
     pub async fn next_many(&mut self, max: usize) -> Vec<Event> {
         let mut out = Vec::new();
         self.events.recv_many(&mut out, max.max(1)).await;
+        self.observe(&mut out).await;
         out
+    }
+
+    /// Keeps the faces handed over and measures the answer into its summary at the end.
+    async fn observe(&mut self, events: &mut [Event]) {
+        let Some(answer) = &mut self.answer else { return };
+        for event in events {
+            match event {
+                Event::Face(face) => answer.corners.push(face.vertices),
+                Event::Finished(summary) => summary.quality = answer.measure().await,
+                Event::Progress { .. } | Event::Failed(_) => {}
+            }
+        }
     }
 
     /// Waits for the whole request. The mesh is made of the faces' corners as they came,
@@ -101,5 +148,33 @@ impl RequestStream {
             }
         }
         Err(EngineError::Stopped)
+    }
+}
+
+impl std::fmt::Debug for Answer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Answer")
+            .field("faces", &self.corners.len())
+            .field("input_points", &self.input.as_ref().map(|(p, _)| p.vertices.len()))
+            .finish_non_exhaustive()
+    }
+}
+
+impl Answer {
+    /// The faces handed over, measured off the async runtime; `None` if that failed.
+    async fn measure(&mut self) -> Option<MeshQuality> {
+        let corners = std::mem::take(&mut self.corners);
+        let input = self.input.clone();
+        let work = move || match input {
+            Some((points, normalization)) => {
+                let normalized = corners.iter().map(|c| c.map(|p| normalization.apply(p)));
+                let mesh = Mesh::from_triangles(normalized);
+                MeshQuality::measure(&mesh, Some(&points.vertices))
+            }
+            None => MeshQuality::measure(&Mesh::from_triangles(corners), None),
+        };
+        let quality = off_runtime(&self.metrics, work).await.ok()?;
+        self.metrics.observe_answer(&quality);
+        Some(quality)
     }
 }

@@ -5,6 +5,7 @@ use super::*;
 use crate::candidates::{MAX_CANDIDATES, candidate_options, input_distance};
 use crate::mesh::primitives::uv_sphere;
 use crate::mesh::{Mesh, REFERENCE_POINTS, UpAxis};
+use crate::metrics::MeshQuality;
 use crate::model::testing::random_model;
 use crate::model::{GenerateOptions, Generation, generate, step_generations};
 use crate::tokenize::{FaceToken, detokenize};
@@ -302,14 +303,15 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
     let (points, normalization) = (p.encoder.points.clone(), p.normalization);
     let work = |stage| engine.metrics().work_seconds(stage);
-    let (plain, fitted) = runtime().block_on(async {
+    let (plain, fitted, measuring) = runtime().block_on(async {
         let plain = engine.submit(plain).unwrap().collect().await.unwrap();
-        // Counted as work of its stages: nothing to end in a plain request.
+        // Counted as work of its stages: a plain request ends by measuring its answer only.
         assert!(work(Stage::Encode) > 0.0 && work(Stage::Decode) > 0.0);
-        assert_eq!(work(Stage::End), 0.0);
-        (plain, engine.submit(fitted).unwrap().collect().await.unwrap())
+        let measuring = work(Stage::End);
+        assert!(measuring > 0.0);
+        (plain, engine.submit(fitted).unwrap().collect().await.unwrap(), measuring)
     });
-    assert!(work(Stage::End) > 0.0, "fitting is counted as ending candidates");
+    assert!(work(Stage::End) > 2.0 * measuring, "fitting is counted as ending the request");
     // The faces as decoded without fitting (this model's have no flat polygons to split
     // again), less the faces and parts that add nothing; only their corners moved.
     assert!(!fitted.tokens.is_empty());
@@ -324,6 +326,27 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     };
     let (before, after) = (from_points(&plain.mesh), from_points(&fitted.mesh));
     assert!(after < before, "Chamfer distance to the points {before} as decoded, {after} fitted");
+}
+
+#[test]
+fn an_answer_is_measured_as_the_client_gets_it() {
+    let (engine, model) = engine(EngineConfig::default());
+    let plain = request(&model, 3, 30);
+    let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
+    let (reference, normalization) = (Arc::clone(&p.reference), p.normalization);
+    let mut fitted = plain.clone();
+    fitted.options.fit_rounds = Some(20);
+    fitted.options.candidates = Some(2);
+    for (name, request) in [("plain", plain), ("two candidates, fitted", fitted)] {
+        let done = runtime().block_on(async { engine.submit(request).unwrap().collect().await });
+        let done = done.unwrap();
+        assert!(!done.mesh.faces.is_empty(), "{name}");
+        let quality = done.summary.quality.expect("measured");
+        // The faces handed over, in the frame of the input points they are measured against.
+        let normalized = normalization.apply_mesh(&done.mesh);
+        assert_eq!(quality, MeshQuality::measure(&normalized, Some(&reference.vertices)), "{name}");
+        assert!(quality.input_chamfer.is_some_and(|d| d > 0.0), "{name}: {quality:?}");
+    }
 }
 
 #[test]
@@ -571,6 +594,9 @@ fn an_image_request_whose_mesh_comes_out_empty_is_sampled_again_from_the_next_se
     assert_eq!(progress, [1, 2, 1, 2, 1, 2]);
     assert_eq!((summary.faces, summary.finish), (0, crate::model::FinishReason::EndOfMesh));
     assert!(summary.total >= summary.decode && summary.queued <= summary.total);
+    // Measured, without input points to measure a distance to.
+    let quality = summary.quality.expect("measured");
+    assert_eq!((quality.edges, quality.parts, quality.input_chamfer), (0, 0, None));
     assert!(metrics.contains("meshstream_image_resamples_total 2"), "{metrics}");
     let (progress, _, metrics) = events_of(1);
     assert_eq!(progress, [1, 2], "one attempt: never sampled again");

@@ -4,6 +4,7 @@ use serde::Serialize;
 use utoipa::ToSchema;
 
 use crate::engine::{StreamedFace, Summary};
+use crate::metrics::MeshQuality;
 
 use super::error::ErrorBody;
 
@@ -32,7 +33,12 @@ pub struct DoneEvent {
     pub encode_ms: f64,
     pub decode_ms: f64,
     pub time_to_first_face_ms: Option<f64>,
+    /// Until the last face was ready.
     pub total_ms: f64,
+    /// How the mesh is built and how far it lies from the input points: absent only when it
+    /// could not be measured.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quality: Option<MeshQuality>,
 }
 
 /// One NDJSON line.
@@ -63,6 +69,7 @@ impl DoneEvent {
             decode_ms: ms(s.decode),
             time_to_first_face_ms: s.time_to_first_face.map(ms),
             total_ms: ms(s.total),
+            quality: s.quality,
         }
     }
 }

@@ -17,8 +17,8 @@ use super::image_input::{GenerateOptions, ImageDefaults, ImageUpload};
 use super::input::{InputLimits, ReconstructOptions, parse_file, point_cloud};
 use super::proto::mesh_generator_server::MeshGenerator;
 use super::proto::{
-    Face, FaceChunk, GenerateRequest, Progress, ReconstructRequest, ReconstructResponse, Stats,
-    reconstruct_request, reconstruct_response,
+    Face, FaceChunk, GenerateRequest, MeshQuality, Progress, ReconstructRequest,
+    ReconstructResponse, Stats, reconstruct_request, reconstruct_response,
 };
 use super::{no_image_model, prepare};
 
@@ -260,6 +260,18 @@ fn done(id: &str, s: &Summary) -> ReconstructResponse {
         decode_ms: ms(s.decode),
         time_to_first_face_ms: s.time_to_first_face.map(ms),
         total_ms: ms(s.total),
+        quality: s.quality.map(|q| MeshQuality {
+            edges: saturating_u32(q.edges),
+            boundary_edges: saturating_u32(q.boundary_edges),
+            non_manifold_edges: saturating_u32(q.non_manifold_edges),
+            parts: saturating_u32(q.parts),
+            watertight: q.watertight,
+            input_chamfer: q.input_chamfer,
+        }),
     };
     ReconstructResponse { event: Some(reconstruct_response::Event::Done(stats)) }
+}
+
+fn saturating_u32(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
 }

@@ -20,6 +20,7 @@ use utoipa::OpenApi;
 
 use crate::engine::{Conditioning, DecodeOptions, Engine, Event, Request, RequestStream};
 use crate::mesh::{Format, write_mesh};
+use crate::metrics::MeshQuality;
 
 use super::auth::AuthLayer;
 use super::error::{ApiError, ErrorBody};
@@ -53,7 +54,7 @@ pub struct AppState {
         with the FACE method, streamed face by face."
     ),
     paths(reconstruct, generate, healthz, readyz, metrics, info),
-    components(schemas(PointsBody, ErrorBody, ProgressEvent, FaceEvent, DoneEvent)),
+    components(schemas(PointsBody, ErrorBody, ProgressEvent, FaceEvent, DoneEvent, MeshQuality)),
     modifiers(&BearerKeys)
 )]
 struct ApiDoc;
@@ -143,6 +144,14 @@ pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
             ("x-request-id" = String, description = "Given or generated"),
             ("x-meshstream-faces" = usize, description = "Faces in the mesh"),
             ("x-meshstream-time-ms" = f64, description = "Time in the engine"),
+            ("x-meshstream-finish-reason" = String, description = "end_of_mesh, max_faces or dead_end"),
+            ("x-meshstream-parts" = usize, description = "Connected parts of the mesh"),
+            ("x-meshstream-edges" = usize, description = "Distinct edges, corners welded by position"),
+            ("x-meshstream-boundary-edges" = usize, description = "Edges used by one face (holes, open borders)"),
+            ("x-meshstream-non-manifold-edges" = usize, description = "Edges used by three or more faces"),
+            ("x-meshstream-watertight" = bool, description = "Every edge shared by exactly two faces"),
+            ("x-meshstream-input-chamfer" = f64, description = "Chamfer distance between the mesh \
+                and the input points, the input's longest side spanning 2"),
         ), content(
             (Binary = "model/gltf-binary"),
             (Binary = "model/obj"),
@@ -458,6 +467,16 @@ async fn mesh_response(
     set("x-meshstream-faces", done_event.faces.to_string());
     set("x-meshstream-time-ms", format!("{:.1}", done_event.total_ms));
     set("x-meshstream-finish-reason", done_event.finish_reason.to_string());
+    if let Some(q) = &done_event.quality {
+        set("x-meshstream-parts", q.parts.to_string());
+        set("x-meshstream-edges", q.edges.to_string());
+        set("x-meshstream-boundary-edges", q.boundary_edges.to_string());
+        set("x-meshstream-non-manifold-edges", q.non_manifold_edges.to_string());
+        set("x-meshstream-watertight", q.watertight.to_string());
+        if let Some(cd) = q.input_chamfer {
+            set("x-meshstream-input-chamfer", format!("{cd:.5}"));
+        }
+    }
     Ok(response)
 }
 

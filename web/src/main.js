@@ -24,6 +24,16 @@ function setState(state) {
   }
 }
 
+/** The done event's `quality` as a line: what the answer says of its build and closeness. */
+function describeQuality(q) {
+  const parts = q.parts === 1 ? '1 part' : `${q.parts} parts`;
+  const build = q.watertight
+    ? 'watertight'
+    : `${q.boundary_edges} of ${q.edges} edges open, ${q.non_manifold_edges} non-manifold`;
+  const distance = q.input_chamfer === undefined ? '' : `, Chamfer distance to the input ${q.input_chamfer.toFixed(3)}`;
+  return `${parts}, ${build}${distance}`;
+}
+
 function showError(text) {
   $('error').textContent = text;
   $('error').hidden = !text;
@@ -112,6 +122,7 @@ async function run() {
     }
     const total = (done.total_ms / 1000).toFixed(2);
     $('progress').textContent += `\nDone: ${done.faces} faces (${done.finish_reason}) in ${total} s on the server.`;
+    if (done.quality) $('progress').textContent += `\nThe mesh: ${describeQuality(done.quality)}.`;
     setState('done');
   } catch (error) {
     if (controller.signal.aborted) {

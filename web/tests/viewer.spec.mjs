@@ -145,6 +145,12 @@ try {
   result.page_faces = await faceCount();
   assert.equal(result.page_faces, done.faces, 'the page counts the faces the done event reports');
   assert.equal(Number(pageDone[1]), done.faces);
+  // What the answer says of itself, as the done event gives it.
+  const q = done.quality;
+  assert(q && q.edges > 0 && q.input_chamfer > 0, JSON.stringify(done));
+  const build = q.watertight ? 'watertight' : `${q.boundary_edges} of ${q.edges} edges open`;
+  assert.match(await text('#progress'), new RegExp(`The mesh: ${q.parts} parts?, ${build}`));
+  result.quality = q;
   assert.match(await text('#progress'), /faces\/s · first face after/);
   await shoot('done');
 
