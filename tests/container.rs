@@ -519,6 +519,7 @@ async fn the_image_serves_drains_on_sigterm_and_compose_scrapes_it() {
             reconstruct_response::Event::Faces(chunk) => faces += chunk.faces.len(),
             reconstruct_response::Event::Done(stats) => done = Some(stats),
             reconstruct_response::Event::Progress(p) => panic!("progress {p:?} for points"),
+            reconstruct_response::Event::Drafts(d) => panic!("drafts {d:?} not asked for"),
         }
     }
     assert!(faces > 0 && done.expect("a final stats message").faces as usize == faces);

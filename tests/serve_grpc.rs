@@ -32,6 +32,7 @@ async fn the_stream_delivers_faces_incrementally_equal_to_the_http_mesh() {
             }
             reconstruct_response::Event::Done(s) => stats = Some(s),
             reconstruct_response::Event::Progress(p) => panic!("progress {p:?} for points"),
+            reconstruct_response::Event::Drafts(d) => panic!("drafts {d:?} not asked for"),
         }
     }
     let stats = stats.expect("a final stats message");
@@ -187,4 +188,42 @@ async fn health_and_reflection_answer() {
     let names: Vec<_> = list.service.iter().map(|s| s.name.as_str()).collect();
     assert!(names.contains(&"meshstream.v1.MeshGenerator"), "{names:?}");
     assert!(names.contains(&"grpc.health.v1.Health"), "{names:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn drafts_come_before_a_whole_answer_that_they_leave_as_it_is() {
+    let server = Server::start(&[]);
+    let mut grpc = client(&server).await;
+    // Faces and drafts of one request, in the order they came.
+    async fn events(
+        grpc: &mut MeshGeneratorClient<tonic::transport::Channel>,
+        drafts: bool,
+    ) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+        let mut request = points_request(120);
+        let options = request.options.as_mut().unwrap();
+        (options.candidates, options.fit_rounds, options.drafts) =
+            (Some(3), Some(20), Some(drafts));
+        let mut stream = grpc.reconstruct(request).await.unwrap().into_inner();
+        let (mut drafted, mut faces) = (Vec::new(), Vec::new());
+        while let Some(message) = stream.message().await.unwrap() {
+            match message.event.unwrap() {
+                reconstruct_response::Event::Drafts(chunk) => {
+                    assert!(faces.is_empty(), "a draft after the answer's faces");
+                    drafted.extend(chunk.faces.into_iter().map(|f| f.vertices));
+                }
+                reconstruct_response::Event::Faces(chunk) => {
+                    faces.extend(chunk.faces.into_iter().map(|f| f.vertices));
+                }
+                reconstruct_response::Event::Done(stats) => {
+                    assert_eq!(stats.faces as usize, faces.len());
+                }
+                reconstruct_response::Event::Progress(p) => panic!("progress {p:?} for points"),
+            }
+        }
+        (drafted, faces)
+    }
+    let (drafted, faces) = events(&mut grpc, true).await;
+    let (none, answer) = events(&mut grpc, false).await;
+    assert!(!drafted.is_empty() && none.is_empty());
+    assert_eq!(faces, answer, "drafts leave the answer as it is");
 }

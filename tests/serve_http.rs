@@ -213,6 +213,40 @@ async fn streams_deliver_faces_as_they_are_decoded_and_equal_the_mesh() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_of_a_whole_answer_sends_drafts_first_when_asked() {
+    let server = Server::start(&[]);
+    let options = json!({"max_faces": 120, "candidates": 3, "fit_rounds": 20, "drafts": true});
+    let r = client()
+        .post(server.url("/reconstruct"))
+        .header("accept", "text/event-stream")
+        .json(&points_json(&shape(), options))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let text = r.text().await.unwrap();
+    let kinds: Vec<&str> = text.lines().filter_map(|l| l.strip_prefix("event: ")).collect();
+    let (drafts, faces) = kinds.iter().fold((0, 0), |(d, f), k| match *k {
+        "draft" => (d + 1, f),
+        "face" => (d, f + 1),
+        _ => (d, f),
+    });
+    assert!(drafts > 0 && faces > 0, "{kinds:?}");
+    // Every draft first, then the answer's faces, then done.
+    let first_face = kinds.iter().position(|k| *k == "face").unwrap();
+    assert!(kinds[..first_face].iter().all(|k| *k == "draft"), "{kinds:?}");
+    assert_eq!(kinds.last(), Some(&"done"));
+    assert_eq!(kinds.len(), drafts + faces + 1);
+    // A whole mesh has no one to show drafts to: the option changes nothing there.
+    let body = json!({"max_faces": 120, "candidates": 3, "fit_rounds": 20});
+    let (_, plain) = reconstruct_glb(&server, &points_json(&shape(), body.clone())).await;
+    let mut asked = body;
+    asked["drafts"] = json!(true);
+    let (_, drafted) = reconstruct_glb(&server, &points_json(&shape(), asked)).await;
+    assert_eq!(plain, drafted);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
     let server = Server::start(&["--candidates", "3"]);
     let c = client();

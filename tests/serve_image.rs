@@ -272,6 +272,7 @@ async fn grpc_streams_progress_then_faces_and_refuses_bad_images() {
             }
             reconstruct_response::Event::Faces(chunk) => faces += chunk.faces.len(),
             reconstruct_response::Event::Done(stats) => done = Some(stats),
+            reconstruct_response::Event::Drafts(d) => panic!("drafts {d:?} of an image request"),
         }
     }
     assert!(steps.windows(2).all(|w| w[0] < w[1]) && steps.last() == Some(&4), "{steps:?}");

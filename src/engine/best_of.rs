@@ -3,7 +3,8 @@
 //! input's points, batched with everything else, and a task streams the one that ends closest
 //! to the input points once all have finished (see `crate::candidates`), its near corners
 //! welded and its corners fitted to those points when asked. Its faces therefore arrive
-//! together at the end, not one by one.
+//! together at the end, not one by one; with `DecodeOptions::drafts` the first candidate's
+//! faces come before them as they are decoded.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -47,7 +48,7 @@ pub(super) fn submit(
         },
     };
     let normalization = prepared.normalization;
-    let seed = request.options.sampling.seed;
+    let (seed, drafts) = (request.options.sampling.seed, request.options.drafts);
     let started = Instant::now();
     let candidates = candidate_sampling(&request.options.sampling, n)
         .into_iter()
@@ -62,6 +63,7 @@ pub(super) fn submit(
                     candidates: None,
                     fit_rounds: None,
                     weld_radius: None,
+                    drafts: false,
                     ..request.options.clone()
                 },
                 deadline: request.deadline,
@@ -84,8 +86,17 @@ pub(super) fn submit(
         // Each candidate is ended as soon as it is decoded, while the others still decode.
         let ended = candidates.into_iter().enumerate().map(|(index, candidate)| {
             let (judge, metrics) = (judge.clone(), Arc::clone(&metrics));
+            // The first candidate's faces go to a client who asked for drafts as they come;
+            // one that is behind misses some rather than hold the decoding up.
+            let drafts = (drafts && index == 0).then(|| tx.clone());
             async move {
-                let completed = candidate.collect().await?;
+                let completed = candidate
+                    .collect_watching(|face| {
+                        if let Some(tx) = &drafts {
+                            let _ = tx.try_send(Event::Draft(face.clone()));
+                        }
+                    })
+                    .await?;
                 off_runtime(&metrics, move || {
                     let finished = judge.end(index, &completed.tokens);
                     (completed, finished)

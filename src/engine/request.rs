@@ -172,6 +172,11 @@ pub struct DecodeOptions {
     /// ([`crate::tokenize::weld_near_corners`]); points requests only, faces arriving at the
     /// end as with candidates. `None` or 0: faces as they come.
     pub weld_radius: Option<u16>,
+    /// While an answer whose faces come at the end (several candidates, welded or fitted) is
+    /// made, stream the first candidate's faces as they are decoded, as [`super::Event::Draft`]s:
+    /// a client watching sees the decoding, then the answer. Ignored where the faces come as
+    /// they are decoded anyway.
+    pub drafts: bool,
 }
 
 #[derive(Debug, Clone)]

@@ -51,6 +51,10 @@ pub enum Event {
         steps: usize,
     },
     Face(StreamedFace),
+    /// A face of a whole answer's first candidate as it is decoded ([`super::DecodeOptions`]
+    /// `drafts`), before the answer's own faces: not part of the answer. Sent when the client
+    /// has room for it; a slow client may miss some, never the answer's faces.
+    Draft(StreamedFace),
     /// The last event of a request that completed.
     Finished(Summary),
     /// The last event of a request that did not.
@@ -124,19 +128,28 @@ impl RequestStream {
             match event {
                 Event::Face(face) => answer.corners.push(face.vertices),
                 Event::Finished(summary) => summary.quality = answer.measure().await,
-                Event::Progress { .. } | Event::Failed(_) => {}
+                Event::Progress { .. } | Event::Draft(_) | Event::Failed(_) => {}
             }
         }
     }
 
     /// Waits for the whole request. The mesh is made of the faces' corners as they came,
     /// which are the tokens' unless the mesh was fitted to its points.
-    pub async fn collect(mut self) -> Result<Completed, EngineError> {
+    pub async fn collect(self) -> Result<Completed, EngineError> {
+        self.collect_watching(|_| {}).await
+    }
+
+    /// [`Self::collect`], handing each face to `watch` as it comes.
+    pub(super) async fn collect_watching(
+        mut self,
+        mut watch: impl FnMut(&StreamedFace),
+    ) -> Result<Completed, EngineError> {
         let (mut tokens, mut corners) = (Vec::new(), Vec::new());
         while let Some(event) = self.next().await {
             match event {
-                Event::Progress { .. } => {}
+                Event::Progress { .. } | Event::Draft(_) => {}
                 Event::Face(face) => {
+                    watch(&face);
                     tokens.push(face.token);
                     corners.push(face.vertices);
                 }

@@ -123,6 +123,7 @@ fn faces_arrive_in_the_callers_coordinates() {
                 }
                 Event::Failed(e) => panic!("{e}"),
                 Event::Progress { .. } => panic!("progress events are for image requests"),
+                Event::Draft(f) => panic!("a draft without drafts asked for: {f:?}"),
             }
         }
         // The sphere was shifted to x = 4: so are the faces.
@@ -350,6 +351,46 @@ fn an_answer_is_measured_as_the_client_gets_it() {
 }
 
 #[test]
+fn drafts_are_the_first_candidate_as_decoded_then_the_answer_follows() {
+    let (engine, model) = engine(EngineConfig::default());
+    let plain = request_with_draws(&model, 3, 30, 3);
+    let mut drafted = plain.clone();
+    drafted.options.candidates = Some(3);
+    drafted.options.fit_rounds = Some(20);
+    drafted.options.drafts = true;
+    let mut undrafted = drafted.clone();
+    undrafted.options.drafts = false;
+    let (drafts, faces, answer, first) = runtime().block_on(async {
+        let (mut drafts, mut faces) = (Vec::new(), Vec::new());
+        let mut stream = engine.submit(drafted).unwrap();
+        while let Some(event) = stream.next().await {
+            match event {
+                Event::Draft(f) => {
+                    assert!(faces.is_empty(), "a draft after the answer's first face");
+                    drafts.push(f);
+                }
+                Event::Face(f) => faces.push(f),
+                Event::Finished(_) => break,
+                Event::Progress { .. } | Event::Failed(_) => panic!("{event:?}"),
+            }
+        }
+        let answer = engine.submit(undrafted).unwrap().collect().await.unwrap();
+        // The first candidate alone: the request as asked, one candidate, as decoded.
+        let Conditioning::Points(p) = &plain.conditioning else { unreachable!() };
+        let mut first = plain.clone();
+        first.conditioning = Conditioning::Points(p.for_candidate(0));
+        let first = engine.submit(first).unwrap().collect().await.unwrap();
+        (drafts, faces, answer, first)
+    });
+    let tokens = |faces: &[StreamedFace]| faces.iter().map(|f| f.token).collect::<Vec<_>>();
+    assert!(!drafts.is_empty());
+    assert_eq!(tokens(&drafts), first.tokens, "drafts are the first candidate's faces");
+    assert!(drafts.iter().enumerate().all(|(i, f)| f.index == i));
+    // The answer is what it is without drafts.
+    assert_eq!(tokens(&faces), answer.tokens);
+}
+
+#[test]
 fn the_deadline_ends_a_request_with_an_error() {
     let (engine, model) = engine(EngineConfig { stream_buffer: 2, ..EngineConfig::default() });
     let mut r = request(&model, 2, 40);
@@ -486,6 +527,7 @@ fn image_requests_report_progress_then_decode_as_alone_next_to_point_requests() 
                         progress.push((step, steps));
                     }
                     Event::Face(f) => tokens.push(f.token),
+                    Event::Draft(f) => panic!("a draft of an image request: {f:?}"),
                     Event::Finished(_) => break,
                     Event::Failed(e) => panic!("{e}"),
                 }
@@ -581,7 +623,9 @@ fn an_image_request_whose_mesh_comes_out_empty_is_sampled_again_from_the_next_se
             loop {
                 match stream.next().await.unwrap() {
                     Event::Progress { step, .. } => progress.push(step),
-                    Event::Face(f) => panic!("a face from a model that ends at once: {f:?}"),
+                    Event::Face(f) | Event::Draft(f) => {
+                        panic!("a face from a model that ends at once: {f:?}")
+                    }
                     Event::Finished(summary) => return (progress, summary),
                     Event::Failed(e) => panic!("{e}"),
                 }

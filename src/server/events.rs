@@ -47,6 +47,8 @@ pub struct DoneEvent {
 pub enum Line {
     Progress(ProgressEvent),
     Face(FaceEvent),
+    /// A face of the first candidate as it is decoded (the `drafts` option), not of the answer.
+    Draft(FaceEvent),
     Done(DoneEvent),
     Error(ErrorBody),
 }

@@ -9,7 +9,9 @@ use std::time::{Duration, Instant};
 use futures_util::{Stream, stream};
 use tonic::{Request, Response, Status};
 
-use crate::engine::{Conditioning, DecodeOptions, Engine, Event, RequestStream, Summary};
+use crate::engine::{
+    Conditioning, DecodeOptions, Engine, Event, RequestStream, StreamedFace, Summary,
+};
 use crate::mesh::Format;
 
 use super::error::ApiError;
@@ -168,6 +170,7 @@ impl GrpcService {
             seed: options.seed,
             format: None,
             up: options.up,
+            drafts: options.drafts,
         };
         let (limits, engine) = (self.limits, self.engine.clone());
         let (parsed, prepared) = tokio::task::spawn_blocking(move || {
@@ -215,25 +218,32 @@ fn responses(
                 if events.is_empty() {
                     return None;
                 }
-                let mut faces = Vec::new();
+                let (mut faces, mut drafts) = (Vec::new(), Vec::new());
                 let mut progress = None;
                 let mut last = None;
+                let face = |f: StreamedFace| Face {
+                    index: f.index as u32,
+                    vertices: f.vertices.iter().flatten().copied().collect(),
+                };
                 for event in events {
                     match event {
                         // Only the latest matters to a client that is behind.
                         Event::Progress { step, steps } => {
                             progress = Some(Progress { step: step as u32, steps: steps as u32 });
                         }
-                        Event::Face(f) => faces.push(Face {
-                            index: f.index as u32,
-                            vertices: f.vertices.iter().flatten().copied().collect(),
-                        }),
+                        Event::Face(f) => faces.push(face(f)),
+                        // Every draft comes before the answer's first face.
+                        Event::Draft(f) => drafts.push(face(f)),
                         Event::Finished(summary) => last = Some(Ok(done(&id, &summary))),
                         Event::Failed(e) => last = Some(Err(Status::from(ApiError::from(e)))),
                     }
                 }
                 if let Some(p) = progress {
                     let event = reconstruct_response::Event::Progress(p);
+                    ready.push_back(Ok(ReconstructResponse { event: Some(event) }));
+                }
+                if !drafts.is_empty() {
+                    let event = reconstruct_response::Event::Drafts(FaceChunk { faces: drafts });
                     ready.push_back(Ok(ReconstructResponse { event: Some(event) }));
                 }
                 if !faces.is_empty() {

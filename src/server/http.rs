@@ -187,6 +187,8 @@ async fn reconstruct(
                 parsed.decode.candidates.get_or_insert(whole_mesh.candidates);
                 parsed.decode.weld_radius.get_or_insert(whole_mesh.weld_radius);
                 parsed.decode.fit_rounds.get_or_insert(whole_mesh.fit_rounds);
+                // Nobody watches a whole mesh being made.
+                parsed.decode.drafts = false;
             }
             let draws = parsed.decode.candidates.unwrap_or(1);
             let conditioning =
@@ -380,12 +382,13 @@ async fn respond(
                 let event = match &line {
                     Line::Progress(_) => "progress",
                     Line::Face(_) => "face",
+                    Line::Draft(_) => "draft",
                     Line::Done(_) => "done",
                     Line::Error(_) => "error",
                 };
                 let data = match line {
                     Line::Progress(p) => serde_json::to_string(&p),
-                    Line::Face(f) => serde_json::to_string(&f),
+                    Line::Face(f) | Line::Draft(f) => serde_json::to_string(&f),
                     Line::Done(d) => serde_json::to_string(&d),
                     Line::Error(e) => serde_json::to_string(&e),
                 };
@@ -418,6 +421,7 @@ fn lines(stream: RequestStream, id: String) -> impl Stream<Item = Line> {
                     return Some((Line::Progress(ProgressEvent { step, steps }), Some(s)));
                 }
                 Event::Face(f) => return Some((Line::Face(FaceEvent::from(&f)), Some(s))),
+                Event::Draft(f) => return Some((Line::Draft(FaceEvent::from(&f)), Some(s))),
                 Event::Finished(summary) => {
                     tracing::info!(request_id = %id, faces = summary.faces, "streamed");
                     Line::Done(DoneEvent::new(&id, &summary))

@@ -65,6 +65,11 @@ pub struct ReconstructOptions {
     /// mostly stand on +y; the input is turned onto it and the mesh comes back turned as sent.
     #[param(schema_with = up_schema)]
     pub up: Option<String>,
+    /// Streams only: while an answer whose faces come at the end is made (more than one
+    /// candidate, welded or fitted), send the first candidate's faces as `draft` events as
+    /// they are decoded, then the answer's as `face` events (default false). Drafts are not
+    /// part of the answer; a client that reads slowly may miss some, never the answer's faces.
+    pub drafts: Option<bool>,
 }
 
 /// `POST /reconstruct` with `Content-Type: application/json`.
@@ -103,6 +108,7 @@ pub struct PointsBody {
     pub format: Option<String>,
     #[schema(schema_with = up_schema)]
     pub up: Option<String>,
+    pub drafts: Option<bool>,
 }
 
 /// A seed: any u64 (utoipa's int64 would stop at i64::MAX).
@@ -195,6 +201,7 @@ impl ReconstructOptions {
             )));
         }
         decode.weld_radius = self.weld_radius;
+        decode.drafts = self.drafts.unwrap_or(false);
         let up = self.up.as_deref().map(str::parse).transpose().map_err(ApiError::invalid)?;
         Ok(ParsedRequest { input, decode, seed, format, up: up.unwrap_or_default() })
     }
@@ -346,6 +353,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         seed: b.seed,
         format: b.format,
         up: b.up,
+        drafts: b.drafts,
     };
     options.checked(mesh)
 }

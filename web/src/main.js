@@ -14,6 +14,10 @@ const OPTIONS = {
 
 let input = null; // { file, kind, path, contentType, extension }
 let running = null; // the AbortController of the request in flight
+// A points request asks for the server's whole-mesh answer (best of its candidates, welded and
+// fitted), with the first candidate's faces streamed as drafts while it is made: the page
+// shows the model decoding, then the answer. From /v1/info.
+let wholeMesh = { candidates: '', weld_radius: '', fit_rounds: '' };
 
 function setState(state) {
   document.body.dataset.state = state;
@@ -75,8 +79,17 @@ async function run() {
   $('face-count').textContent = '0';
   setState('running');
   const options = Object.fromEntries(OPTIONS[input.kind].map((name) => [name, $(name).value]));
+  if (input.kind === 'points') {
+    Object.assign(options, {
+      candidates: options.candidates || wholeMesh.candidates,
+      weld_radius: wholeMesh.weld_radius,
+      fit_rounds: wholeMesh.fit_rounds,
+      drafts: true,
+    });
+  }
   const started = performance.now();
   let firstFace = null;
+  let answering = false; // the answer's faces have begun (they replace the drafts)
   let diffusion = '';
   const progress = () => {
     const parts = [diffusion];
@@ -84,7 +97,7 @@ async function run() {
       const seconds = (performance.now() - firstFace) / 1000;
       const rate = seconds > 0 ? (view.faceCount - 1) / seconds : 0;
       parts.push(
-        `${view.faceCount} faces`,
+        answering ? `${view.faceCount} faces` : `draft: ${view.faceCount} faces of the first candidate`,
         `${rate.toFixed(1)} faces/s`,
         `first face after ${((firstFace - started) / 1000).toFixed(2)} s`,
       );
@@ -104,8 +117,13 @@ async function run() {
       onEvent(event) {
         if (event.type === 'progress') {
           diffusion = `diffusion step ${event.step} of ${event.steps}`;
-        } else if (event.type === 'face') {
+        } else if (event.type === 'draft' || event.type === 'face') {
           firstFace ??= performance.now();
+          if (event.type === 'face' && !answering) {
+            // The answer replaces the drafts at once: its faces come together.
+            answering = true;
+            view.clearFaces(view.faceCount);
+          }
           view.addFace(event.vertices);
           $('face-count').textContent = String(view.faceCount);
         }
@@ -164,7 +182,12 @@ async function showServerInfo() {
     // f32 defaults come as their nearest f64 (1.2000000476837158): shown as written.
     set('temperature', Number(defaults.temperature.toPrecision(6)));
     set('seed', 0);
-    set('candidates', defaults.candidates.stream);
+    wholeMesh = {
+      candidates: defaults.candidates.whole_mesh,
+      weld_radius: defaults.weld_radius.whole_mesh,
+      fit_rounds: defaults.fit_rounds.whole_mesh,
+    };
+    set('candidates', wholeMesh.candidates);
     if (image) {
       set('steps', image.default_steps, info.engine.max_diffusion_steps);
       set('guidance', Number(image.default_guidance.toPrecision(6)));

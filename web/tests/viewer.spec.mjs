@@ -110,7 +110,9 @@ try {
   await page.waitForFunction(() => !document.getElementById('server').textContent.startsWith('Asking'));
   const serverLine = await text('#server');
   assert.match(serverLine, /up to \d+ faces/, serverLine);
-  assert.equal(await attribute('#max_faces', 'placeholder'), String(JSON.parse(await (await fetch(`${base}/v1/info`)).text()).limits.max_faces));
+  const info = JSON.parse(await (await fetch(`${base}/v1/info`)).text());
+  assert.equal(await attribute('#max_faces', 'placeholder'), String(info.limits.max_faces));
+  assert.equal(await attribute('#candidates', 'placeholder'), String(info.defaults.candidates.whole_mesh));
 
   step('upload a point cloud and watch its faces arrive');
   await fill('#max_faces', '400');
@@ -119,6 +121,12 @@ try {
   await fileInput.uploadFile(new URL('mug-points.ply', examples).pathname);
   await page.waitForFunction(() => document.getElementById('input-name').textContent.endsWith('2048 points'));
   assert.equal((await streamed).headers()['content-type'], 'application/x-ndjson');
+  // The server's whole-mesh answer, with the first candidate's faces as drafts meanwhile.
+  const asked = new URL((await streamed).url()).searchParams;
+  for (const name of ['candidates', 'weld_radius', 'fit_rounds']) {
+    assert.equal(asked.get(name), String(info.defaults[name].whole_mesh), `${name} in ${asked}`);
+  }
+  assert.equal(asked.get('drafts'), 'true');
   // A screenshot while the faces stream in (if the stream outruns the poll, at its end).
   await page.waitForFunction(() => Number(document.getElementById('face-count').textContent) >= 60
     || document.body.dataset.state !== 'running');
@@ -132,7 +140,7 @@ try {
   // same faces (the page's own response body is gone: the page read it as a stream).
   const pageDone = (await text('#progress')).match(/Done: (\d+) faces/);
   assert(pageDone, 'no done line on the page');
-  const direct = await fetch(`${base}/reconstruct?max_faces=400`, {
+  const direct = await fetch(`${base}/reconstruct?${asked}`, {
     method: 'POST',
     headers: { 'content-type': 'application/ply', accept: 'application/x-ndjson' },
     body: await readFile(new URL('mug-points.ply', examples)),
@@ -141,6 +149,8 @@ try {
   const done = lines.at(-1);
   assert.equal(done.type, 'done');
   assert.equal(lines.filter((l) => l.type === 'face').length, done.faces);
+  result.draft_faces = lines.filter((l) => l.type === 'draft').length;
+  assert(result.draft_faces > 0, 'no drafts before the answer');
   result.done_faces = done.faces;
   result.page_faces = await faceCount();
   assert.equal(result.page_faces, done.faces, 'the page counts the faces the done event reports');

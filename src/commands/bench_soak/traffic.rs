@@ -312,7 +312,8 @@ impl<'a> Client<'a> {
                 reconstruct_response::Event::Done(stats) => {
                     return Attempt::Done(counted(stats.faces as usize, faces, t0, first_face));
                 }
-                reconstruct_response::Event::Progress(_) => {}
+                reconstruct_response::Event::Progress(_)
+                | reconstruct_response::Event::Drafts(_) => {}
             }
         }
     }
