@@ -144,6 +144,30 @@ fn metric_names(expr: &str) -> Vec<String> {
     names
 }
 
+/// The image builds from a context `.dockerignore` cuts down to a list; a file the binary
+/// embeds and the list leaves out breaks only `docker build`, which needs Docker. Checked here
+/// without it: every `include_bytes!` of the viewer is named (or its folder is).
+#[test]
+fn the_build_context_holds_every_file_the_binary_embeds() {
+    let kept: Vec<String> = read(".dockerignore")
+        .lines()
+        .filter_map(|l| l.strip_prefix('!'))
+        .map(|l| l.trim().to_string())
+        .collect();
+    let ui = read("src/server/ui.rs");
+    let embedded: Vec<&str> = ui
+        .split("include_bytes!(\"../../")
+        .skip(1)
+        .filter_map(|rest| rest.split('"').next())
+        .collect();
+    assert!(embedded.len() >= 5, "{embedded:?}");
+    for path in embedded {
+        assert!(Path::new(ROOT).join(path).is_file(), "{path} is embedded but missing");
+        let named = kept.iter().any(|k| k == path || (k.ends_with('/') && path.starts_with(k)));
+        assert!(named, "{path} is embedded but .dockerignore leaves it out of the image's build");
+    }
+}
+
 #[test]
 fn dockerfiles_and_manifests_pass_their_validators() {
     for tool in ["hadolint", "kubectl", "kubernetes-validate"] {
