@@ -105,10 +105,9 @@ pub fn decode(
     Ok(decoded)
 }
 
-/// Writes a decoded mesh (not empty) in the caller's frame, `normalization` inverted, and
-/// reports what it wrote, timed from `start`.
-/// Writes the decoded mesh (normalized frame) in the caller's coordinates and says what it
-/// is: its size, time, and [`MeshQuality`] against the `input` points it was made from.
+/// Writes a decoded mesh (not empty, normalized frame) in the caller's frame, `normalization`
+/// inverted, and reports what it wrote: its size, the time from `start`, and its
+/// [`MeshQuality`] against the `input` points it was made from.
 pub fn write_decoded(
     (mesh, reason): (Mesh, FinishReason),
     args: &DecodeArgs,

@@ -178,13 +178,11 @@ impl Answer {
     async fn measure(&mut self) -> Option<MeshQuality> {
         let corners = std::mem::take(&mut self.corners);
         let input = self.input.clone();
-        let work = move || match input {
-            Some((points, normalization)) => {
-                let normalized = corners.iter().map(|c| c.map(|p| normalization.apply(p)));
-                let mesh = Mesh::from_triangles(normalized);
-                MeshQuality::measure(&mesh, Some(&points.vertices))
-            }
-            None => MeshQuality::measure(&Mesh::from_triangles(corners), None),
+        let work = move || {
+            // Back in the frame of the input points, where there are some.
+            let frame = |p| input.as_ref().map_or(p, |(_, n)| n.apply(p));
+            let mesh = Mesh::from_triangles(corners.iter().map(|c| c.map(frame)));
+            MeshQuality::measure(&mesh, input.as_ref().map(|(points, _)| &points.vertices[..]))
         };
         let quality = off_runtime(&self.metrics, work).await.ok()?;
         self.metrics.observe_answer(&quality);
