@@ -13,8 +13,8 @@ use candle_core::Tensor;
 use rayon::prelude::*;
 
 use crate::mesh::{
-    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, without_folded_faces,
-    without_stray_parts,
+    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, with_small_holes_filled,
+    without_folded_faces, without_stray_parts,
 };
 use crate::metrics::point_set_distances;
 use crate::model::{
@@ -53,6 +53,9 @@ pub struct Ending {
     /// parts the points do not need ([`without_folded_faces`], [`without_stray_parts`]);
     /// `None` keeps the corners on the grid and every face.
     pub fit: Option<FitOptions>,
+    /// A fitted winner's loops of at most this many open edges are closed where the input
+    /// points cover them ([`with_small_holes_filled`]); below 3 none are.
+    pub max_hole_edges: usize,
 }
 
 /// Points sampled on each candidate's surface to compare it with the input points.
@@ -256,9 +259,12 @@ impl Judge {
     pub fn finish(&self, winner: Finished) -> Finished {
         let finished = self.finish_fit(winner);
         match (&self.ending.fit, &self.target) {
-            (Some(_), Some(_)) => {
+            (Some(_), Some(target)) => {
                 let unfolded = without_folded_faces(&finished.mesh);
-                let mesh = without_stray_parts(&unfolded, &self.cloud.vertices, self.seed);
+                let kept = without_stray_parts(&unfolded, &self.cloud.vertices, self.seed);
+                let (mesh, holes) =
+                    with_small_holes_filled(&kept, target, self.ending.max_hole_edges);
+                tracing::debug!(holes, "small holes filled");
                 Finished { mesh, ..finished }
             }
             _ => finished,
@@ -528,7 +534,7 @@ mod tests {
         let mut cluttered: Vec<FaceToken> = whole.iter().copied().chain(layer).collect();
         cluttered.sort_unstable();
         let end = |fit| {
-            let ending = Ending { weld_radius: 0, fit };
+            let ending = Ending { weld_radius: 0, fit, ..Ending::default() };
             closest_finished([&cluttered[..]].into_iter(), q, &cloud, &ending, 0).unwrap()
         };
         let fitted = end(Some(FitOptions::default()));
@@ -545,7 +551,11 @@ mod tests {
         // once for every face on it.
         let mut cracked = whole.clone();
         cracked[5][3..6].iter_mut().for_each(|c| *c -= 1);
-        let ending = |weld_radius| Ending { weld_radius, fit: Some(FitOptions::default()) };
+        let ending = |weld_radius| Ending {
+            weld_radius,
+            fit: Some(FitOptions::default()),
+            ..Ending::default()
+        };
         let end = |weld| closest_finished([&cracked[..]].into_iter(), q, &cloud, &ending(weld), 0);
         let welded = end(1).unwrap();
         assert_eq!(welded.decoded, detokenize(&whole, q));

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use common::{Server, points_json, shape, stream_through};
 use futures_util::StreamExt;
-use meshstream::mesh::{Format, ReadLimits, read_mesh, write_mesh};
+use meshstream::mesh::{Format, Mesh, ReadLimits, read_mesh, write_mesh};
 use meshstream::metrics::{point_set_distances, topology};
 use serde_json::{Value, json};
 
@@ -276,7 +276,9 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
     assert_eq!(info["defaults"]["weld_radius"], json!({"whole_mesh": 1, "stream": 0}));
     assert_eq!(info["defaults"]["reference_points"], 500);
     let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
-    let fitted = read(&reconstruct_glb(&server, &points_json(&shape(), json!({}))).await.1);
+    // Holes left open, so that the faces are the decoded ones (closing them adds faces).
+    let fitted = json!({"max_hole_edges": 0});
+    let fitted = read(&reconstruct_glb(&server, &points_json(&shape(), fitted)).await.1);
     let as_decoded = json!({"fit_rounds": 0});
     let decoded = read(&reconstruct_glb(&server, &points_json(&shape(), as_decoded)).await.1);
     // The same faces, their corners moved (a flat polygon may come split the other way for
@@ -284,7 +286,8 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
     assert_eq!(fitted.faces.len(), decoded.faces.len());
     assert_ne!(fitted.vertices, decoded.vertices);
     // A stream that asks is welded and fitted alike; its faces come together at the end.
-    let asked = points_json(&shape(), json!({"fit_rounds": 7, "weld_radius": 1}));
+    let asked = json!({"fit_rounds": 7, "weld_radius": 1, "max_hole_edges": 0});
+    let asked = points_json(&shape(), asked);
     let (faces, _) = stream_events(&server, &asked, "application/x-ndjson").await;
     assert_eq!(faces.len(), fitted.faces.len());
     for (i, (_, f)) in faces.iter().enumerate() {
@@ -294,6 +297,37 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
             assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-5), "{a:?} vs {b:?}");
         }
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fitted_answer_has_its_small_holes_closed_unless_it_asks_not_to() {
+    let server = Server::start(&["--candidates", "1", "--reference-points", "2000"]);
+    let c = client();
+    let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["defaults"]["max_hole_edges"], 8);
+    let read = |glb: &[u8]| read_mesh(glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    let answer = |extra: Value| {
+        let body = points_json(&shape(), extra);
+        let server = &server;
+        async move {
+            let (headers, glb) = reconstruct_glb(server, &body).await;
+            let count = |name: &str| -> usize { headers[name].to_str().unwrap().parse().unwrap() };
+            (read(&glb), count("x-meshstream-boundary-edges"))
+        }
+    };
+    let (closed, closed_open_edges) = answer(json!({})).await;
+    let (open, open_edges) = answer(json!({"max_hole_edges": 0})).await;
+    // The same answer, with faces added over some of its holes and none taken away.
+    assert!(closed.faces.len() > open.faces.len(), "no hole was closed: {open_edges} open edges");
+    assert!(closed_open_edges < open_edges, "{closed_open_edges} against {open_edges}");
+    let corners = |m: &Mesh| -> Vec<[[u32; 3]; 3]> {
+        let mut faces: Vec<_> =
+            m.faces.iter().map(|f| f.map(|v| m.vertices[v as usize].map(f32::to_bits))).collect();
+        faces.sort_unstable();
+        faces
+    };
+    let (all, kept) = (corners(&closed), corners(&open));
+    assert!(kept.iter().all(|f| all.binary_search(f).is_ok()), "a face of the open answer is gone");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -436,6 +470,13 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (
             json,
             format!(r#"{{"points": {three}, "weld_radius": 5}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "max_hole_edges": 33}}"#).into_bytes(),
             "",
             422,
             "invalid_input",

@@ -6,9 +6,9 @@ use std::time::{Duration, Instant};
 
 use clap::Subcommand;
 use meshstream::mesh::{
-    FitOptions, Format, REFERENCE_POINTS, ReadLimits, farthest_point_sampling, fit_to_points,
-    input_clouds, primitives, read_mesh, sample_surface, without_folded_faces, without_stray_parts,
-    write_mesh,
+    DEFAULT_MAX_HOLE_EDGES, FitOptions, FitTarget, Format, Mesh, REFERENCE_POINTS, ReadLimits,
+    farthest_point_sampling, fit_to_points, input_clouds, primitives, read_mesh, sample_surface,
+    with_small_holes_filled, without_folded_faces, without_stray_parts, write_mesh,
 };
 use meshstream::metrics::{MeshQuality, MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -106,7 +106,7 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     // What a request's input costs before the model sees it: the encoder's 1,024 points
     // (drawn independently, or spread over 4 times as many) and the reference, from a mesh
     // and from a cloud with normals.
-    let points = meshstream::mesh::Mesh { faces: Vec::new(), ..cloud.clone() };
+    let points = Mesh { faces: Vec::new(), ..cloud.clone() };
     for (input, what) in [(&dense, format!("{faces} faces")), (&points, "65,536 points".into())] {
         for oversampling in [1, 4] {
             let t = time_per_run(budget, || {
@@ -177,6 +177,31 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         format!("{} faces, each twice", truth.faces.len()),
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.0} faces/s", twice.faces.len() as f64 / t.as_secs_f64()),
+    ]);
+    // Holes to close: every eighth face of the sphere gone, each a loop of 3 on its points.
+    let target = FitTarget::new(&sample_surface(&truth, REFERENCE_POINTS, 0)?)?;
+    let holed = Mesh {
+        faces: truth
+            .faces
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| i % 8 != 0)
+            .map(|(_, f)| *f)
+            .collect(),
+        ..truth.clone()
+    };
+    let missing = truth.faces.len() - holed.faces.len();
+    let (_, closed) = with_small_holes_filled(&holed, &target, DEFAULT_MAX_HOLE_EDGES);
+    let t =
+        time_per_run(budget, || with_small_holes_filled(&holed, &target, DEFAULT_MAX_HOLE_EDGES));
+    table.add_row([
+        "small holes".to_string(),
+        format!(
+            "{} faces, {missing} missing as {closed} loops, {REFERENCE_POINTS} points",
+            holed.faces.len()
+        ),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.0} loops/s", closed as f64 / t.as_secs_f64()),
     ]);
     // What every answer adds to its request: its build and its distance to the input points.
     let t = time_per_run(budget, || MeshQuality::measure(&truth, Some(&points)));

@@ -4,7 +4,9 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS};
-use meshstream::mesh::{FitOptions, REFERENCE_POINTS, UpAxis, input_clouds};
+use meshstream::mesh::{
+    DEFAULT_MAX_HOLE_EDGES, FitOptions, MAX_HOLE_EDGES, REFERENCE_POINTS, UpAxis, input_clouds,
+};
 use meshstream::model::{Quantize, parse_device};
 
 use super::decode::{DecodeArgs, FromPoints, decode, write_decoded};
@@ -45,6 +47,11 @@ pub struct ReconstructArgs {
     #[arg(long, default_value_t = DEFAULT_WELD_RADIUS,
           value_parser = clap::value_parser!(u16).range(..=i64::from(MAX_WELD_RADIUS)))]
     weld_radius: u16,
+    /// Close a fitted mesh's loops of at most this many open edges where the input points
+    /// cover them, with new faces wound like those around; below 3 leaves every hole open.
+    #[arg(long, default_value_t = DEFAULT_MAX_HOLE_EDGES as u64,
+          value_parser = clap::value_parser!(u64).range(..=MAX_HOLE_EDGES as u64))]
+    max_hole_edges: u64,
     /// The furthest fitting may move a corner, in units of half the input's longest side.
     #[arg(long, default_value_t = FitOptions::default().max_shift)]
     fit_max_shift: f32,
@@ -98,7 +105,11 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         patience: args.fit_patience,
         ..FitOptions::default()
     };
-    let ending = Ending { weld_radius: args.weld_radius, fit: (fit.rounds > 0).then_some(fit) };
+    let ending = Ending {
+        weld_radius: args.weld_radius,
+        fit: (fit.rounds > 0).then_some(fit),
+        max_hole_edges: args.max_hole_edges as usize,
+    };
     let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
     let decoded = decode(&model, &latents, &args.decode, Some(from_points), args.seed)?;
     let input = Some(&clouds.reference.vertices[..]);

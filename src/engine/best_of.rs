@@ -13,7 +13,7 @@ use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
 use crate::candidates::{Ending, Finished, Judge, candidate_sampling};
-use crate::mesh::FitOptions;
+use crate::mesh::{DEFAULT_MAX_HOLE_EDGES, FitOptions};
 use crate::model::FaceToken;
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
@@ -46,6 +46,7 @@ pub(super) fn submit(
             0 => None,
             rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
         },
+        max_hole_edges: request.options.max_hole_edges.unwrap_or(DEFAULT_MAX_HOLE_EDGES),
     };
     let normalization = prepared.normalization;
     let (seed, drafts) = (request.options.sampling.seed, request.options.drafts);
@@ -63,6 +64,7 @@ pub(super) fn submit(
                     candidates: None,
                     fit_rounds: None,
                     weld_radius: None,
+                    max_hole_edges: None,
                     drafts: false,
                     ..request.options.clone()
                 },
@@ -211,7 +213,8 @@ mod tests {
                 .iter()
                 .map(|&[a, b, c]| canonical_face([cell(a), cell(b), cell(c)]).unwrap())
                 .collect();
-            let ending = Ending { weld_radius: 0, fit: Some(FitOptions::default()) };
+            let ending =
+                Ending { weld_radius: 0, fit: Some(FitOptions::default()), ..Ending::default() };
             let ended = closest_finished([&decoded[..]].into_iter(), q, &cloud, &ending, 0);
             let streamed = ended_faces(&ended.unwrap(), q);
             assert_eq!(faces_of(&mut streamed.iter().map(|(_, c)| *c)), expected, "{diagonals}");

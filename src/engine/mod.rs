@@ -35,7 +35,7 @@ use tokio::sync::mpsc;
 
 use crate::candidates::{MAX_CANDIDATES, MAX_WELD_RADIUS};
 use crate::diffusion::{DiffusionModel, DitConfig};
-use crate::mesh::MAX_FIT_ROUNDS;
+use crate::mesh::{MAX_FIT_ROUNDS, MAX_HOLE_EDGES};
 use crate::model::{FaceConfig, FaceModel, MAX_FACE_BEAM};
 use crate::tokenize::Quantizer;
 
@@ -236,6 +236,13 @@ impl Engine {
             return Err(EngineError::InvalidInput(
                 "a mesh is fitted to input points: an image request has none".into(),
             ));
+        }
+        if let Some(n) = request.options.max_hole_edges
+            && n > MAX_HOLE_EDGES
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "max_hole_edges must be at most {MAX_HOLE_EDGES}, got {n}"
+            )));
         }
         let weld_radius = request.options.weld_radius.unwrap_or(0);
         if weld_radius > MAX_WELD_RADIUS {

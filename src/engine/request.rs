@@ -172,6 +172,10 @@ pub struct DecodeOptions {
     /// ([`crate::tokenize::weld_near_corners`]); points requests only, faces arriving at the
     /// end as with candidates. `None` or 0: faces as they come.
     pub weld_radius: Option<u16>,
+    /// A fitted answer's loops of at most this many open edges are closed where the input
+    /// points cover them ([`crate::mesh::with_small_holes_filled`]); points requests only.
+    /// `None`: [`crate::mesh::DEFAULT_MAX_HOLE_EDGES`]; below 3: none.
+    pub max_hole_edges: Option<usize>,
     /// While an answer whose faces come at the end (several candidates, welded or fitted) is
     /// made, stream the first candidate's faces as they are decoded, as [`super::Event::Draft`]s:
     /// a client watching sees the decoding, then the answer. Ignored where the faces come as

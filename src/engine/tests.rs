@@ -251,6 +251,9 @@ fn invalid_options_are_refused_before_queueing() {
     r.options.weld_radius = Some(1);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
     r.options.weld_radius = None;
+    r.options.max_hole_edges = Some(crate::mesh::MAX_HOLE_EDGES + 1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    r.options.max_hole_edges = None;
     // Best-of-N runs a task that picks the winner: outside a runtime it has nowhere to run.
     r.options.candidates = Some(2);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));

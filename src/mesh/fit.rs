@@ -110,8 +110,8 @@ pub fn fit_to_target(
         return Err(MeshError::invalid("no corners to fit"));
     };
     let (lo, hi) = (
-        std::array::from_fn::<f32, 3, _>(|k| lo[k].min(target.lo[k]) - target.margin),
-        std::array::from_fn::<f32, 3, _>(|k| hi[k].max(target.hi[k]) + target.margin),
+        std::array::from_fn::<f32, 3, _>(|k| lo[k].min(target.lo[k]) - target.margin()),
+        std::array::from_fn::<f32, 3, _>(|k| hi[k].max(target.hi[k]) + target.margin()),
     );
     let mut fitted = Mesh { normals: None, ..mesh.clone() };
     let (mut least, mut since_least) = (f32::INFINITY, 0);
@@ -160,7 +160,8 @@ pub struct FitTarget {
     tree: ImmutableKdTree<f32, 3>,
     lo: [f32; 3],
     hi: [f32; 3],
-    margin: f32,
+    /// The points' mean distance to their nearest neighbour ([`spacing`]).
+    spacing: f32,
 }
 
 impl FitTarget {
@@ -178,8 +179,8 @@ impl FitTarget {
             }
         };
         let tree = tree_of(&points)?;
-        let margin = BOUNDS_MARGIN * spacing(&points, &tree);
-        Ok(Self { points, normals, tree, lo, hi, margin })
+        let spacing = spacing(&points, &tree);
+        Ok(Self { points, normals, tree, lo, hi, spacing })
     }
 
     /// This target with only every `step`-th of its points (the same bounds): a cheaper,
@@ -191,6 +192,21 @@ impl FitTarget {
         let points = every(&self.points);
         let tree = tree_of(&points)?;
         Ok(Self { normals: every(&self.normals), points, tree, ..*self })
+    }
+
+    /// How far past the points' bounds a fitted corner may go ([`BOUNDS_MARGIN`] spacings).
+    fn margin(&self) -> f32 {
+        BOUNDS_MARGIN * self.spacing
+    }
+
+    /// The points' mean distance to their nearest neighbour.
+    pub fn spacing(&self) -> f32 {
+        self.spacing
+    }
+
+    /// How far `p` lies from the nearest of the points.
+    pub fn distance_to(&self, p: [f32; 3]) -> f32 {
+        self.tree.query(&p).nearest_one::<SquaredEuclidean<f32>>().execute().distance.sqrt()
     }
 }
 
@@ -396,7 +412,7 @@ mod tests {
 
     /// The bounds of `cloud` and `mesh` together, widened by [`BOUNDS_MARGIN`] spacings.
     fn widened_bounds(cloud: &Mesh, mesh: &Mesh) -> ([f32; 3], [f32; 3]) {
-        let margin = FitTarget::new(cloud).unwrap().margin;
+        let margin = FitTarget::new(cloud).unwrap().margin();
         let all = [cloud.vertices.as_slice(), &mesh.vertices].concat();
         let (lo, hi) = crate::mesh::bounds(&all).unwrap();
         (lo.map(|c| c - margin), hi.map(|c| c + margin))

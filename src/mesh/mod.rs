@@ -10,6 +10,7 @@ mod format;
 mod fps;
 mod gltf_read;
 mod gltf_write;
+mod holes;
 mod limits;
 mod normalize;
 mod obj;
@@ -29,6 +30,7 @@ pub use fit::{FitOptions, FitTarget, MAX_FIT_ROUNDS, fit_to_points, fit_to_targe
 pub use folded_faces::without_folded_faces;
 pub use format::{Format, read_mesh, read_mesh_file, write_mesh, write_mesh_file};
 pub use fps::farthest_point_sampling;
+pub use holes::{DEFAULT_MAX_HOLE_EDGES, MAX_HOLE_EDGES, with_small_holes_filled};
 pub use limits::ReadLimits;
 pub use normalize::{Normalization, UpAxis};
 pub use points::{
@@ -153,6 +155,21 @@ impl Mesh {
         (0..)
             .zip(&self.vertices)
             .map(|(i, &p)| *first_at.entry(position_key(p)).or_insert(i))
+            .collect()
+    }
+
+    /// Each valid face with its corners replaced by the first vertex at the same position,
+    /// without the faces that collapse to an edge or a point: the faces as a user sees them
+    /// joined, since files split vertices along seams (normals, UVs).
+    pub fn welded_faces(&self) -> Vec<[u32; 3]> {
+        let canonical = self.first_vertex_at_each_position();
+        self.faces
+            .iter()
+            .filter_map(|f| {
+                let [a, b, c] = f.map(|i| canonical.get(i as usize).copied());
+                let face = [a?, b?, c?];
+                (face[0] != face[1] && face[1] != face[2] && face[2] != face[0]).then_some(face)
+            })
             .collect()
     }
 

@@ -38,7 +38,7 @@ impl Topology {
 /// The topology of `mesh`; indices must be valid ([`Mesh::validate`]), faces with an index
 /// out of range are skipped.
 pub fn topology(mesh: &Mesh) -> Topology {
-    let welded = welded_faces(mesh);
+    let welded = mesh.welded_faces();
     let mut uses: HashMap<(u32, u32), usize> = HashMap::new();
     let mut sets = DisjointSets::new(mesh.vertices.len());
     for &[a, b, c] in &welded {
@@ -58,20 +58,6 @@ pub fn topology(mesh: &Mesh) -> Topology {
         non_manifold_edges: uses.values().filter(|&&n| n > 2).count(),
         parts: roots.len(),
     }
-}
-
-/// Each valid face with its corners replaced by the first vertex at the same position,
-/// without the faces that collapse to an edge or a point.
-fn welded_faces(mesh: &Mesh) -> Vec<[u32; 3]> {
-    let canonical = mesh.first_vertex_at_each_position();
-    mesh.faces
-        .iter()
-        .filter_map(|f| {
-            let [a, b, c] = f.map(|i| canonical.get(i as usize).copied());
-            let face = [a?, b?, c?];
-            (face[0] != face[1] && face[1] != face[2] && face[2] != face[0]).then_some(face)
-        })
-        .collect()
 }
 
 /// Topology over a set of meshes: means of the per-mesh shares and of the parts, next to the

@@ -8,7 +8,7 @@ use utoipa::{IntoParams, ToSchema};
 
 use crate::candidates::{MAX_CANDIDATES, MAX_WELD_RADIUS};
 use crate::engine::DecodeOptions;
-use crate::mesh::{Format, MAX_FIT_ROUNDS, Mesh, ReadLimits, UpAxis, read_mesh};
+use crate::mesh::{Format, MAX_FIT_ROUNDS, MAX_HOLE_EDGES, Mesh, ReadLimits, UpAxis, read_mesh};
 use crate::model::{DEFAULT_TEMPERATURE, MAX_FACE_BEAM, SamplingParams};
 
 use super::error::ApiError;
@@ -54,6 +54,12 @@ pub struct ReconstructOptions {
     /// the end.
     #[param(maximum = 4)]
     pub weld_radius: Option<u16>,
+    /// Close the fitted mesh's loops of at most this many open edges (at most 32) with new
+    /// faces, where the input points cover them: the cracks and missing faces of an otherwise
+    /// closed surface; an opening the points show (a cup's rim) stays open. Below 3 leaves
+    /// every hole. Default 8 (see `/v1/info`); only a fitted mesh (`fit_rounds` above 0).
+    #[param(maximum = 32)]
+    pub max_hole_edges: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     #[param(schema_with = seed_schema)]
     pub seed: Option<u64>,
@@ -102,6 +108,8 @@ pub struct PointsBody {
     pub fit_rounds: Option<usize>,
     #[schema(maximum = 4)]
     pub weld_radius: Option<u16>,
+    #[schema(maximum = 32)]
+    pub max_hole_edges: Option<usize>,
     #[schema(schema_with = seed_schema)]
     pub seed: Option<u64>,
     #[schema(value_type = Option<MeshFormat>)]
@@ -201,6 +209,14 @@ impl ReconstructOptions {
             )));
         }
         decode.weld_radius = self.weld_radius;
+        if let Some(n) = self.max_hole_edges
+            && n > MAX_HOLE_EDGES
+        {
+            return Err(ApiError::invalid(format!(
+                "max_hole_edges {n} must be at most {MAX_HOLE_EDGES}"
+            )));
+        }
+        decode.max_hole_edges = self.max_hole_edges;
         decode.drafts = self.drafts.unwrap_or(false);
         let up = self.up.as_deref().map(str::parse).transpose().map_err(ApiError::invalid)?;
         Ok(ParsedRequest { input, decode, seed, format, up: up.unwrap_or_default() })
@@ -350,6 +366,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         candidates: b.candidates,
         fit_rounds: b.fit_rounds,
         weld_radius: b.weld_radius,
+        max_hole_edges: b.max_hole_edges,
         seed: b.seed,
         format: b.format,
         up: b.up,

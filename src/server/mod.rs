@@ -182,6 +182,7 @@ fn info_document(engine: &Engine, cfg: &ServeConfig) -> serde_json::Value {
             "candidates": { "whole_mesh": cfg.whole_mesh.candidates, "stream": 1 },
             "weld_radius": { "whole_mesh": cfg.whole_mesh.weld_radius, "stream": 0 },
             "fit_rounds": { "whole_mesh": cfg.whole_mesh.fit_rounds, "stream": 0 },
+            "max_hole_edges": crate::mesh::DEFAULT_MAX_HOLE_EDGES,
             "reference_points": cfg.limits.reference_points,
             "temperature": DEFAULT_TEMPERATURE,
         },
