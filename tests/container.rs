@@ -313,11 +313,23 @@ impl Docker {
     /// builder layer holding a release target folder, and unpruned its data root had grown to
     /// 7.8 GB on a developer's machine. The images a rebuild left untagged go, and the build
     /// cache beyond the 4 GB used last (the latest build's layers). A user's own daemon is
-    /// left alone: its images and cache are not ours to delete.
+    /// left alone: its images and cache are not ours to delete. Housekeeping after the checks,
+    /// so a failure is reported, not failed on: a daemon killed mid-build leaves its build
+    /// cache naming snapshots it no longer has ("failed to get usage ... not found"), and the
+    /// image itself built and served.
     fn prune(&self) {
         if self.daemon.is_some() {
-            self.run(&["image", "prune", "--force"]);
-            self.run(&["builder", "prune", "--force", "--keep-storage", "4GB"]);
+            for args in [
+                &["image", "prune", "--force"][..],
+                &["builder", "prune", "--force", "--keep-storage", "4GB"],
+            ] {
+                let out = self.command().args(args).output();
+                match out {
+                    Ok(out) if out.status.success() => {}
+                    Ok(out) => eprintln!("docker {args:?} did not prune: {}", report(&out)),
+                    Err(e) => eprintln!("docker {args:?} did not run: {e}"),
+                }
+            }
         }
     }
 
