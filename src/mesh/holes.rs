@@ -11,7 +11,7 @@
 use std::collections::hash_map::Entry;
 use std::collections::{HashMap, HashSet};
 
-use super::{FitTarget, Mesh, triangle_area, triangle_normal};
+use super::{FitTarget, Mesh, edge_uses, triangle_area, triangle_normal, undirected};
 
 /// The longest loop of open edges that is filled, when a caller does not say: longer loops
 /// are mostly missing surface the model did not decode, which a few flat triangles would
@@ -43,16 +43,12 @@ const MIN_AREA_SHARE: f64 = 1e-6;
 /// the new faces come after the old ones. Indices must be valid ([`Mesh::validate`]).
 pub fn with_small_holes_filled(mesh: &Mesh, target: &FitTarget, max_edges: usize) -> (Mesh, usize) {
     let welded = mesh.welded_faces();
-    let mut rims = OpenEdges::of(&welded);
+    let uses = edge_uses(&welded);
+    let mut rims = OpenEdges::of(&welded, &uses);
     if max_edges < 3 || rims.sorted.is_empty() {
         return (mesh.clone(), 0);
     }
-    let mut edges: HashSet<(u32, u32)> = HashSet::new();
-    for &[a, b, c] in &welded {
-        for (p, q) in [(a, b), (b, c), (c, a)] {
-            edges.insert((p.min(q), p.max(q)));
-        }
-    }
+    let mut edges: HashSet<(u32, u32)> = uses.into_keys().collect();
     let reach = reach(mesh, &welded, target);
     let mut faces = mesh.faces.clone();
     let mut filled = 0;
@@ -63,10 +59,9 @@ pub fn with_small_holes_filled(mesh: &Mesh, target: &FitTarget, max_edges: usize
                 continue;
             };
             let corners: Vec<[f32; 3]> = hole.iter().map(|&v| mesh.vertices[v as usize]).collect();
-            let Some(fan) = least_area_fan(&corners, |i, j| {
-                let (p, q) = (hole[i], hole[j]);
-                !edges.contains(&(p.min(q), p.max(q)))
-            }) else {
+            let Some(fan) =
+                least_area_fan(&corners, |i, j| !edges.contains(&undirected(hole[i], hole[j])))
+            else {
                 continue;
             };
             if fan.iter().any(|t| distance_from_input(target, t.map(|i| corners[i])) > reach)
@@ -78,9 +73,7 @@ pub fn with_small_holes_filled(mesh: &Mesh, target: &FitTarget, max_edges: usize
                 // The loop runs as the open edges of the faces around it run; a face that
                 // closes it runs the other way.
                 faces.push([hole[j], hole[k], hole[i]]);
-                for (p, q) in [(hole[i], hole[k]), (hole[k], hole[j])] {
-                    edges.insert((p.min(q), p.max(q)));
-                }
+                edges.extend([undirected(hole[i], hole[k]), undirected(hole[k], hole[j])]);
             }
             rims.close(&hole);
             filled += 1;
@@ -101,17 +94,12 @@ struct OpenEdges {
 }
 
 impl OpenEdges {
-    fn of(faces: &[[u32; 3]]) -> Self {
-        let mut uses: HashMap<(u32, u32), usize> = HashMap::new();
-        for &[a, b, c] in faces {
-            for (p, q) in [(a, b), (b, c), (c, a)] {
-                *uses.entry((p.min(q), p.max(q))).or_default() += 1;
-            }
-        }
+    /// Of `faces`, whose edges' [`edge_uses`] are `uses`.
+    fn of(faces: &[[u32; 3]], uses: &HashMap<(u32, u32), usize>) -> Self {
         let apex: HashMap<(u32, u32), u32> = faces
             .iter()
             .flat_map(|&[a, b, c]| [((a, b), c), ((b, c), a), ((c, a), b)])
-            .filter(|&((p, q), _)| uses[&(p.min(q), p.max(q))] == 1)
+            .filter(|&((p, q), _)| uses.get(&undirected(p, q)) == Some(&1))
             .collect();
         let mut sorted: Vec<(u32, u32)> = apex.keys().copied().collect();
         sorted.sort_unstable();
@@ -176,10 +164,10 @@ fn folds_back(mesh: &Mesh, rims: &OpenEdges, hole: &[u32], fan: &[[usize; 3]]) -
     let at = |v: u32| mesh.vertices[v as usize];
     fan.iter().any(|&[i, k, j]| {
         let added = triangle_normal([at(hole[j]), at(hole[k]), at(hole[i])]);
-        let rim_sides = [(i, k), (k, j), (j, i)]
+        let mut rim_sides = [(i, k), (k, j), (j, i)]
             .into_iter()
             .filter(|&(a, b)| b == (a + 1) % n || a == (b + 1) % n);
-        rim_sides.into_iter().any(|(a, b)| {
+        rim_sides.any(|(a, b)| {
             // The side as the rim runs: from a corner to the next.
             let (p, q) = if b == (a + 1) % n { (hole[a], hole[b]) } else { (hole[b], hole[a]) };
             rims.apex.get(&(p, q)).is_some_and(|&c| {
@@ -261,10 +249,10 @@ fn reach(mesh: &Mesh, faces: &[[u32; 3]], target: &FitTarget) -> f32 {
         .collect();
     let floor = SUPPORT_SPACINGS * target.spacing();
     let rank = ((own.len() as f32 * OWN_FACES_SHARE) as usize).min(own.len().saturating_sub(1));
-    match own.is_empty() {
-        true => floor,
-        false => own.select_nth_unstable_by(rank, f32::total_cmp).1.max(floor),
+    if own.is_empty() {
+        return floor;
     }
+    own.select_nth_unstable_by(rank, f32::total_cmp).1.max(floor)
 }
 
 #[cfg(test)]

@@ -46,6 +46,22 @@ pub(crate) fn position_key(p: [f32; 3]) -> [u32; 3] {
     p.map(|c| (c + 0.0).to_bits())
 }
 
+/// The edge between corners `p` and `q` either way round, as [`edge_uses`] keys it.
+pub(crate) fn undirected(p: u32, q: u32) -> (u32, u32) {
+    (p.min(q), p.max(q))
+}
+
+/// How many of `faces` use each edge: 1 on an open border, 3 or more where it is not manifold.
+pub(crate) fn edge_uses(faces: &[[u32; 3]]) -> std::collections::HashMap<(u32, u32), usize> {
+    let mut uses = std::collections::HashMap::new();
+    for &[a, b, c] in faces {
+        for (p, q) in [(a, b), (b, c), (c, a)] {
+            *uses.entry(undirected(p, q)).or_default() += 1;
+        }
+    }
+    uses
+}
+
 /// A triangle mesh, or a point cloud when `faces` is empty.
 ///
 /// Coordinates are `f32` (the precision every format we read stores); indices are `u32`.

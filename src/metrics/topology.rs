@@ -3,9 +3,7 @@
 //! connected parts it has. The Chamfer distance cannot tell a closed box from a box-shaped
 //! heap of unconnected slivers; these can, and they are what a user sees first.
 
-use std::collections::HashMap;
-
-use crate::mesh::{DisjointSets, Mesh};
+use crate::mesh::{DisjointSets, Mesh, edge_uses};
 
 use super::faces::ratio;
 
@@ -39,12 +37,9 @@ impl Topology {
 /// out of range are skipped.
 pub fn topology(mesh: &Mesh) -> Topology {
     let welded = mesh.welded_faces();
-    let mut uses: HashMap<(u32, u32), usize> = HashMap::new();
+    let uses = edge_uses(&welded);
     let mut sets = DisjointSets::new(mesh.vertices.len());
     for &[a, b, c] in &welded {
-        for (p, q) in [(a, b), (b, c), (c, a)] {
-            *uses.entry((p.min(q), p.max(q))).or_default() += 1;
-        }
         sets.union(a as usize, b as usize);
         sets.union(a as usize, c as usize);
     }
