@@ -13,8 +13,8 @@ use candle_core::Tensor;
 use rayon::prelude::*;
 
 use crate::mesh::{
-    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, with_small_holes_filled,
-    without_folded_faces, without_stray_parts,
+    FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, with_faces_facing_out,
+    with_small_holes_filled, without_folded_faces, without_stray_parts,
 };
 use crate::metrics::point_set_distances;
 use crate::model::{
@@ -255,16 +255,20 @@ impl Judge {
     /// done most of the moving, and refitting cost about as much as fitting all candidates.
     ///
     /// A fitted winner then loses the faces that lie on other faces ([`without_folded_faces`])
-    /// and the parts its input points do not need ([`without_stray_parts`]).
+    /// and the parts its input points do not need ([`without_stray_parts`]), has its small
+    /// holes closed ([`with_small_holes_filled`]) and its faces turned to face out
+    /// ([`with_faces_facing_out`]).
     pub fn finish(&self, winner: Finished) -> Finished {
         let finished = self.finish_fit(winner);
         match (&self.ending.fit, &self.target) {
             (Some(_), Some(target)) => {
                 let unfolded = without_folded_faces(&finished.mesh);
                 let kept = without_stray_parts(&unfolded, &self.cloud.vertices, self.seed);
-                let (mesh, holes) =
+                let (closed, holes) =
                     with_small_holes_filled(&kept, target, self.ending.max_hole_edges);
-                tracing::debug!(holes, "small holes filled");
+                // Last, so that the faces that closed holes turn with their surfaces.
+                let (mesh, turned) = with_faces_facing_out(&closed);
+                tracing::debug!(holes, turned, "small holes filled, faces turned out");
                 Finished { mesh, ..finished }
             }
             _ => finished,

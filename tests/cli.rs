@@ -136,6 +136,11 @@ fn eval_scores_pairs_and_counts_missing_and_empty_predictions_as_failures() {
     assert!(v["meshes"][1]["faces"].is_null(), "a failure has no face figures");
     assert_eq!((v["faces"]["meshes"].clone(), v["faces"]["exact"].clone()), (2.into(), 1.into()));
     assert_eq!(v["faces"]["recall_mean"], 0.5);
+    // The cube is wound outward: no edge misoriented, nothing seen from behind.
+    assert_eq!(v["meshes"][3]["topology"]["misoriented_edges"], 0);
+    assert_eq!(v["meshes"][3]["back_faces_seen"], 0.0);
+    assert!(v["meshes"][1]["back_faces_seen"].is_null(), "a failure has no share");
+    assert_eq!(v["topology"]["truth_back_faces_seen"], 0.0);
     let loose = ok_json(&[
         "eval",
         "--pred",

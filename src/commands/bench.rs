@@ -8,7 +8,8 @@ use clap::Subcommand;
 use meshstream::mesh::{
     DEFAULT_MAX_HOLE_EDGES, FitOptions, FitTarget, Format, Mesh, REFERENCE_POINTS, ReadLimits,
     farthest_point_sampling, fit_to_points, input_clouds, primitives, read_mesh, sample_surface,
-    with_small_holes_filled, without_folded_faces, without_stray_parts, write_mesh,
+    with_faces_facing_out, with_small_holes_filled, without_folded_faces, without_stray_parts,
+    write_mesh,
 };
 use meshstream::metrics::{MeshQuality, MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -202,6 +203,16 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         ),
         format!("{:.1} ms", t.as_secs_f64() * 1e3),
         format!("{:.0} loops/s", closed as f64 / t.as_secs_f64()),
+    ]);
+    // Faces to turn: a third of the sphere's faces wound inward.
+    let mut scrambled = truth.clone();
+    scrambled.faces.iter_mut().step_by(3).for_each(|f| f.swap(1, 2));
+    let t = time_per_run(budget, || with_faces_facing_out(&scrambled));
+    table.add_row([
+        "faces facing out".to_string(),
+        format!("{} faces, a third wound inward", scrambled.faces.len()),
+        format!("{:.1} ms", t.as_secs_f64() * 1e3),
+        format!("{:.0} faces/s", scrambled.faces.len() as f64 / t.as_secs_f64()),
     ]);
     // What every answer adds to its request: its build and its distance to the input points.
     let t = time_per_run(budget, || MeshQuality::measure(&truth, Some(&points)));

@@ -5,8 +5,8 @@ use clap::Args;
 use meshstream::mesh::mesh_files_in;
 use meshstream::metrics::{
     DEFAULT_FACE_TOLERANCE, Distances, EvalRecord, EvalSummary, FaceMatch, FaceSummary,
-    MetricOptions, PairedDifference, Topology, TopologySummary, face_match, mesh_distances,
-    paired_chamfer, summarize, summarize_faces, summarize_topology, topology,
+    MetricOptions, PairedDifference, Topology, TopologySummary, back_faces_seen, face_match,
+    mesh_distances, paired_chamfer, summarize, summarize_faces, summarize_topology, topology,
 };
 use serde::Serialize;
 
@@ -57,6 +57,10 @@ struct Row {
     /// How the prediction and the ground truth are put together; `None` for a failure.
     topology: Option<Topology>,
     truth_topology: Option<Topology>,
+    /// Shares of the rays from around each mesh that meet a face from behind
+    /// ([`back_faces_seen`]); `None` for a failure or a mesh without faces.
+    back_faces_seen: Option<f64>,
+    truth_back_faces_seen: Option<f64>,
     failure: Option<String>,
 }
 
@@ -66,6 +70,8 @@ struct Shape {
     faces: Option<FaceMatch>,
     topology: Topology,
     truth_topology: Topology,
+    back_faces_seen: Option<f64>,
+    truth_back_faces_seen: Option<f64>,
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
@@ -88,6 +94,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let topology_summary = TopologySummaries {
         prediction: summarize_topology(&scored.iter().map(|s| s.topology).collect::<Vec<_>>()),
         truth: summarize_topology(&scored.iter().map(|s| s.truth_topology).collect::<Vec<_>>()),
+        back_faces_seen: mean(scored.iter().filter_map(|s| s.back_faces_seen)),
+        truth_back_faces_seen: mean(scored.iter().filter_map(|s| s.truth_back_faces_seen)),
     };
     let rows: Vec<Row> = records
         .iter()
@@ -103,6 +111,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 faces: shape.and_then(|s| s.faces),
                 topology: shape.map(|s| s.topology),
                 truth_topology: shape.map(|s| s.truth_topology),
+                back_faces_seen: shape.and_then(|s| s.back_faces_seen),
+                truth_back_faces_seen: shape.and_then(|s| s.truth_back_faces_seen),
                 failure: r.result.as_ref().err().cloned(),
             }
         })
@@ -124,11 +134,20 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Both topologies' summaries.
+/// Both topologies' summaries, and the mean shares of back faces seen over the meshes that
+/// have one.
 #[derive(Serialize)]
 struct TopologySummaries {
     prediction: TopologySummary,
     truth: TopologySummary,
+    back_faces_seen: Option<f64>,
+    truth_back_faces_seen: Option<f64>,
+}
+
+/// The mean of `values`, `None` for none.
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.fold((0.0, 0usize), |(sum, n), v| (sum + v, n + 1));
+    (n > 0).then(|| sum / n as f64)
 }
 
 /// One record per ground-truth mesh, and what else its prediction scores (`None` for a
@@ -195,7 +214,16 @@ fn evaluate_pair(
     // The distances passed and `run` checked the tolerance: only a faceless ground truth is
     // left to fail.
     let faces = face_match(&pred, &gt, face_tolerance).ok();
-    Ok((distances, Shape { faces, topology: topology(&pred), truth_topology: topology(&gt) }))
+    Ok((
+        distances,
+        Shape {
+            faces,
+            topology: topology(&pred),
+            truth_topology: topology(&gt),
+            back_faces_seen: back_faces_seen(&pred),
+            truth_back_faces_seen: back_faces_seen(&gt),
+        },
+    ))
 }
 
 fn print_tables(
@@ -295,12 +323,24 @@ fn print_comparison(other: &EvalSummary, p: &PairedDifference) -> anyhow::Result
 /// How the predictions are put together, beside the ground truth.
 fn print_topology(t: &TopologySummaries) -> anyhow::Result<()> {
     let mut table = super::table();
-    table.set_header(["topology (means)", "boundary edges", "non-manifold edges", "parts"]);
-    for (name, s) in [("prediction", &t.prediction), ("ground truth", &t.truth)] {
+    table.set_header([
+        "topology (means)",
+        "boundary edges",
+        "non-manifold edges",
+        "misoriented edges",
+        "back faces seen",
+        "parts",
+    ]);
+    for (name, s, back) in [
+        ("prediction", &t.prediction, t.back_faces_seen),
+        ("ground truth", &t.truth, t.truth_back_faces_seen),
+    ] {
         table.add_row([
             name.to_string(),
             percent(s.boundary_share_mean),
             percent(s.non_manifold_share_mean),
+            percent(s.misoriented_share_mean),
+            percent(back),
             s.parts_mean.map_or_else(|| "-".to_string(), |p| format!("{p:.1}")),
         ]);
     }

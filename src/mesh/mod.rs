@@ -3,6 +3,7 @@
 mod assemble;
 mod disjoint_sets;
 mod error;
+mod facing;
 mod files;
 mod fit;
 mod folded_faces;
@@ -25,6 +26,7 @@ pub mod transform;
 
 pub(crate) use disjoint_sets::DisjointSets;
 pub use error::MeshError;
+pub use facing::with_faces_facing_out;
 pub use files::{expand_mesh_paths, mesh_files_in};
 pub use fit::{FitOptions, FitTarget, MAX_FIT_ROUNDS, fit_to_points, fit_to_target};
 pub use folded_faces::without_folded_faces;

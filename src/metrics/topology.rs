@@ -1,7 +1,9 @@
 //! How a mesh is put together, apart from where its surface lies: the share of edges on a
-//! boundary (used by one face) or non-manifold (used by three or more), and how many
-//! connected parts it has. The Chamfer distance cannot tell a closed box from a box-shaped
+//! boundary (used by one face), non-manifold (used by three or more) or between two faces
+//! wound opposite ways, and how many connected parts it has. The Chamfer distance cannot tell a closed box from a box-shaped
 //! heap of unconnected slivers; these can, and they are what a user sees first.
+
+use std::collections::HashMap;
 
 use crate::mesh::{DisjointSets, Mesh, edge_uses};
 
@@ -19,6 +21,10 @@ pub struct Topology {
     pub boundary_edges: usize,
     /// Edges used by three or more faces: fins, overlaps, repeated faces.
     pub non_manifold_edges: usize,
+    /// Edges used by two faces that run along them the same way: one of the two is wound
+    /// the other way round, and a viewer drawing front sides only shows it as a hole.
+    #[serde(default)]
+    pub misoriented_edges: usize,
     /// Sets of faces connected through shared corners.
     pub parts: usize,
 }
@@ -31,6 +37,10 @@ impl Topology {
     pub fn non_manifold_share(&self) -> f64 {
         ratio(self.non_manifold_edges, self.edges)
     }
+
+    pub fn misoriented_share(&self) -> f64 {
+        ratio(self.misoriented_edges, self.edges)
+    }
 }
 
 /// The topology of `mesh`; indices must be valid ([`Mesh::validate`]), faces with an index
@@ -38,6 +48,14 @@ impl Topology {
 pub fn topology(mesh: &Mesh) -> Topology {
     let welded = mesh.welded_faces();
     let uses = edge_uses(&welded);
+    // How many faces run along each edge from its lower corner to its higher one: 1 of 2
+    // when the two are wound alike.
+    let mut upward: HashMap<(u32, u32), usize> = HashMap::new();
+    for &[a, b, c] in &welded {
+        for (p, q) in [(a, b), (b, c), (c, a)].into_iter().filter(|(p, q)| p < q) {
+            *upward.entry((p, q)).or_default() += 1;
+        }
+    }
     let mut sets = DisjointSets::new(mesh.vertices.len());
     for &[a, b, c] in &welded {
         sets.union(a as usize, b as usize);
@@ -51,6 +69,10 @@ pub fn topology(mesh: &Mesh) -> Topology {
         edges: uses.len(),
         boundary_edges: uses.values().filter(|&&n| n == 1).count(),
         non_manifold_edges: uses.values().filter(|&&n| n > 2).count(),
+        misoriented_edges: uses
+            .iter()
+            .filter(|&(edge, &n)| n == 2 && upward.get(edge).copied().unwrap_or(0) != 1)
+            .count(),
         parts: roots.len(),
     }
 }
@@ -63,19 +85,23 @@ pub struct TopologySummary {
     /// `None` when there are no meshes.
     pub boundary_share_mean: Option<f64>,
     pub non_manifold_share_mean: Option<f64>,
+    #[serde(default)]
+    pub misoriented_share_mean: Option<f64>,
     pub parts_mean: Option<f64>,
 }
 
-/// "open edges 38.0%, non-manifold 7.3%, parts 3.4", as training logs print it.
+/// "open edges 38.0%, non-manifold 7.3%, misoriented 4.1%, parts 3.4", as training logs
+/// print it.
 impl std::fmt::Display for TopologySummary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let share = |v: Option<f64>| v.map_or_else(|| "-".into(), |v| format!("{:.1}%", 100.0 * v));
         let parts = self.parts_mean.map_or_else(|| "-".into(), |v| format!("{v:.1}"));
         write!(
             f,
-            "open edges {}, non-manifold {}, parts {parts}",
+            "open edges {}, non-manifold {}, misoriented {}, parts {parts}",
             share(self.boundary_share_mean),
-            share(self.non_manifold_share_mean)
+            share(self.non_manifold_share_mean),
+            share(self.misoriented_share_mean)
         )
     }
 }
@@ -88,6 +114,7 @@ pub fn summarize_topology(meshes: &[Topology]) -> TopologySummary {
         meshes: meshes.len(),
         boundary_share_mean: mean(&Topology::boundary_share),
         non_manifold_share_mean: mean(&Topology::non_manifold_share),
+        misoriented_share_mean: mean(&Topology::misoriented_share),
         parts_mean: mean(&|t| t.parts as f64),
     }
 }
@@ -101,8 +128,14 @@ mod tests {
     fn a_summary_reads_as_shares_and_parts() {
         let open = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], vec![[0, 1, 2]]);
         let summary = summarize_topology(&[topology(&cuboid([1.0; 3])), topology(&open)]);
-        assert_eq!(summary.to_string(), "open edges 50.0%, non-manifold 0.0%, parts 1.0");
-        assert_eq!(summarize_topology(&[]).to_string(), "open edges -, non-manifold -, parts -");
+        assert_eq!(
+            summary.to_string(),
+            "open edges 50.0%, non-manifold 0.0%, misoriented 0.0%, parts 1.0"
+        );
+        assert_eq!(
+            summarize_topology(&[]).to_string(),
+            "open edges -, non-manifold -, misoriented -, parts -"
+        );
     }
 
     #[test]
@@ -110,8 +143,34 @@ mod tests {
         let t = topology(&cuboid([1.0, 2.0, 3.0]));
         assert_eq!(
             t,
-            Topology { faces: 12, edges: 18, boundary_edges: 0, non_manifold_edges: 0, parts: 1 }
+            Topology {
+                faces: 12,
+                edges: 18,
+                boundary_edges: 0,
+                non_manifold_edges: 0,
+                misoriented_edges: 0,
+                parts: 1
+            }
         );
+    }
+
+    #[test]
+    fn a_face_wound_the_other_way_misorients_its_three_edges() {
+        let mut mesh = cuboid([1.0; 3]);
+        mesh.faces[0].swap(1, 2);
+        let t = topology(&mesh);
+        assert_eq!((t.misoriented_edges, t.boundary_edges, t.non_manifold_edges), (3, 0, 0));
+        assert!((t.misoriented_share() - 3.0 / 18.0).abs() < 1e-12);
+        // Split vertices (a flat-shaded export) weld first.
+        let vertices: Vec<[f32; 3]> = mesh.faces.iter().flat_map(|f| mesh.triangle(f)).collect();
+        let faces = (0..12).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+        assert_eq!(topology(&Mesh::new(vertices, faces)), t);
+        // A report written before edges were counted this way reads as none.
+        let old: Topology = serde_json::from_str(
+            r#"{"faces":1,"edges":3,"boundary_edges":3,"non_manifold_edges":0,"parts":1}"#,
+        )
+        .unwrap();
+        assert_eq!(old.misoriented_edges, 0);
     }
 
     #[test]

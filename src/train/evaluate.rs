@@ -521,6 +521,7 @@ mod tests {
             meshes: 4,
             boundary_share_mean: Some(0.0),
             non_manifold_share_mean: Some(0.0),
+            misoriented_share_mean: Some(0.0),
             parts_mean: Some(1.0),
         };
         assert_eq!(summarize_topology(&scores.topologies), closed);
