@@ -29,24 +29,21 @@ const LOOKS: usize = 9;
 /// with. Vertices stay as they are; faces keep their places and corners, two of which swap
 /// on a turned face. Indices must be valid ([`Mesh::validate`]).
 pub fn with_faces_facing_out(mesh: &Mesh) -> (Mesh, usize) {
-    let surfaces = Surfaces::of(mesh);
     let Some(rays) = Rays::new(mesh) else {
         return (mesh.clone(), 0);
     };
-    let mut turned = surfaces.turned_alike.clone();
-    for faces in &surfaces.members {
-        let area = |f: usize| triangle_area(mesh.triangle(&mesh.faces[f]));
-        // Each face as it stands once wound alike: its look is negated when it is turned.
-        let look: f64 = faces
-            .iter()
-            .map(|&f| {
-                let sign = if turned[f] { -1.0 } else { 1.0 };
-                sign * area(f) * rays.front_minus_back(f)
-            })
-            .sum();
-        let turned_area: f64 = faces.iter().filter(|&&f| turned[f]).map(|&f| area(f)).sum();
-        let kept_area: f64 = faces.iter().filter(|&&f| !turned[f]).map(|&f| area(f)).sum();
-        let flip = if look != 0.0 { look < 0.0 } else { turned_area > kept_area };
+    let Surfaces { members, turned_alike: mut turned } = Surfaces::of(mesh);
+    for faces in &members {
+        // How much further the surface sees on its front, wound alike, than on its back; and
+        // its area that keeps its decoded winding, less the area that turns.
+        let (mut look, mut net_kept_area) = (0.0, 0.0);
+        for &f in faces {
+            let area = triangle_area(mesh.triangle(&mesh.faces[f]));
+            let sign = if turned[f] { -1.0 } else { 1.0 };
+            look += sign * area * rays.front_minus_back(f);
+            net_kept_area += sign * area;
+        }
+        let flip = if look != 0.0 { look < 0.0 } else { net_kept_area < 0.0 };
         if flip {
             for &f in faces {
                 turned[f] = !turned[f];
