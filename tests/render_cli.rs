@@ -108,3 +108,25 @@ fn a_z_up_mesh_drawn_with_up_z_looks_as_its_y_up_twin() {
     assert_eq!(pixels(&a), pixels(&b));
     assert_ne!(pixels(&a), pixels(&c));
 }
+
+#[test]
+fn back_faces_shows_an_inside_out_box_red_and_a_right_one_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let right = cuboid([1.0, 2.0, 1.5]);
+    let mut inside_out = right.clone();
+    inside_out.faces.iter_mut().for_each(|f| f.swap(1, 2));
+    let red_pixels = |mesh: &meshstream::mesh::Mesh, name: &str| {
+        let (file, png) =
+            (dir.path().join(format!("{name}.ply")), dir.path().join(format!("{name}.png")));
+        write_mesh_file(mesh, &file, None).unwrap();
+        render_ok(&["render", path(&file), "-o", path(&png), "--size", "48", "--back-faces"]);
+        let img = image::open(&png).unwrap().to_rgb8();
+        img.pixels().filter(|p| i32::from(p.0[0]) > i32::from(p.0[1]) + 60).count()
+    };
+    assert_eq!(red_pixels(&right, "right"), 0);
+    assert!(red_pixels(&inside_out, "inside-out") > 1000);
+    let both = meshstream(&["render", "x.ply", "-o", "x.png", "--back-faces", "--color-parts"]);
+    assert!(
+        !both.status.success() && String::from_utf8_lossy(&both.stderr).contains("cannot be used")
+    );
+}

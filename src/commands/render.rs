@@ -42,8 +42,12 @@ pub struct RenderArgs {
     #[arg(long)]
     world_light: bool,
     /// A flat colour per part (connected component of faces sharing vertices).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "back_faces")]
     color_parts: bool,
+    /// Faces seen from behind in red: what a viewer drawing front sides only (glTF's
+    /// default) leaves out.
+    #[arg(long)]
+    back_faces: bool,
     /// The mesh's up axis (y, z, x, or one of them negated), drawn up: `--up z` stands a mesh
     /// from Blender, CAD or `reconstruct --up z` upright.
     #[arg(long, default_value = "y")]
@@ -83,7 +87,11 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             frame: if args.world_light { LightFrame::World } else { LightFrame::Camera },
             ..defaults
         },
-        coloring: if args.color_parts { Coloring::Parts } else { Coloring::default() },
+        coloring: match (args.color_parts, args.back_faces) {
+            (true, _) => Coloring::Parts,
+            (_, true) => Coloring::BackFaces,
+            _ => Coloring::default(),
+        },
         ..RenderOptions::default()
     };
     let image = render_grid(&mesh, &options, args.views)?;

@@ -3,7 +3,7 @@
 use image::RgbImage;
 
 use super::camera::{NEAR_PLANE, View};
-use super::options::{WorldLight, shade};
+use super::options::{BACK_FACE_COLOR, DEFAULT_COLOR, WorldLight, shade};
 use super::parts::{face_parts, part_color};
 use super::raster::{Target, clip_near};
 use super::{Coloring, RenderError, RenderOptions};
@@ -13,7 +13,8 @@ use crate::mesh::{Mesh, normalized, triangle_normal};
 /// cameras) into an image of `options.width` x `options.height`.
 ///
 /// Faces are shaded flat and from both sides (the normal facing the camera), since artist
-/// meshes are not always consistently wound. A mesh without faces is a point cloud: each point
+/// meshes are not always consistently wound; [`Coloring::BackFaces`] shows where a face is
+/// seen from behind. A mesh without faces is a point cloud: each point
 /// is a disc of `options.point_radius` pixels, lit by its normal when the mesh has normals and
 /// as if it faced the light when not. Faces that pass behind the camera are clipped at a near
 /// plane; degenerate faces draw nothing; an empty mesh gives the background. The output
@@ -28,6 +29,7 @@ pub fn render(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage, RenderEr
         let color = match options.coloring {
             Coloring::Uniform(c) => c,
             Coloring::Parts => part_color(0),
+            Coloring::BackFaces => DEFAULT_COLOR,
         };
         draw_points(&mut target, mesh, &view, &light, color, options.point_radius);
     } else {
@@ -46,16 +48,19 @@ fn draw_faces(
     let camera_space: Vec<[f32; 3]> = mesh.vertices.iter().map(|&p| view.to_camera(p)).collect();
     let parts = match coloring {
         Coloring::Parts => face_parts(mesh),
-        Coloring::Uniform(_) => Vec::new(),
+        Coloring::Uniform(_) | Coloring::BackFaces => Vec::new(),
     };
     for (f, face) in mesh.faces.iter().enumerate() {
         let world = mesh.triangle(face);
-        let Some(normal) = facing_camera(triangle_normal(world), world[0], view.eye) else {
+        let front = triangle_normal(world);
+        let Some(normal) = facing_camera(front, world[0], view.eye) else {
             continue;
         };
         let base = match coloring {
             Coloring::Uniform(c) => c,
             Coloring::Parts => part_color(parts.get(f).copied().unwrap_or(0)),
+            Coloring::BackFaces if normal != front => BACK_FACE_COLOR,
+            Coloring::BackFaces => DEFAULT_COLOR,
         };
         let color = shade(base, light.intensity(normal));
         // `mesh.validate()` checked every index; a bad one would still only skip the face.
@@ -268,6 +273,23 @@ mod tests {
             let o = RenderOptions { coloring, ..RenderOptions::default() };
             assert_eq!(render(&cuboid([2.0; 3]), &o).unwrap(), render(&flipped, &o).unwrap());
         }
+    }
+
+    #[test]
+    fn back_faces_show_red_only_where_a_face_is_seen_from_behind() {
+        let light = Light { ambient: 1.0, diffuse: 0.0, ..Light::default() };
+        let o = RenderOptions { coloring: Coloring::BackFaces, light, ..RenderOptions::default() };
+        let colours = |mesh: &Mesh| {
+            let img = render(mesh, &o).unwrap();
+            let count = |c: [u8; 3]| img.pixels().filter(|p| p.0 == c).count();
+            (count(DEFAULT_COLOR), count(BACK_FACE_COLOR))
+        };
+        let right = cuboid([2.0; 3]);
+        let (front, back) = colours(&right);
+        assert!(front > 0 && back == 0, "{front} {back}");
+        let mut inside_out = right.clone();
+        inside_out.faces.iter_mut().for_each(|f| f.swap(1, 2));
+        assert_eq!(colours(&inside_out), (back, front));
     }
 
     #[test]

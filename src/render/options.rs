@@ -167,10 +167,19 @@ pub enum Coloring {
     /// fixed palette in the order the parts' first faces appear; point clouds use the
     /// palette's first colour.
     Parts,
+    /// The default colour where a face is seen from its front, red where from behind: what
+    /// a viewer that draws front sides only (glTF's default) would leave out.
+    BackFaces,
 }
+
+/// The colour [`Coloring::BackFaces`] gives a face seen from behind.
+pub const BACK_FACE_COLOR: [u8; 3] = [220, 40, 40];
+
+/// The base colour a mesh is drawn in unless asked otherwise (sRGB).
+pub const DEFAULT_COLOR: [u8; 3] = [200, 200, 210];
 
 impl Default for Coloring {
     fn default() -> Self {
-        Self::Uniform([200, 200, 210])
+        Self::Uniform(DEFAULT_COLOR)
     }
 }
