@@ -120,10 +120,40 @@ impl Surfaces {
     }
 }
 
+/// A mesh's faces ready for ray casts, with its bounding box's centre and diagonal.
+pub(crate) struct RayTarget {
+    pub shape: TriMesh,
+    pub centre: Point3<f64>,
+    pub diagonal: f64,
+}
+
+impl RayTarget {
+    /// `None` for a mesh without faces or size; indices must be valid.
+    pub fn new(mesh: &Mesh) -> Option<Self> {
+        let (lo, hi) = mesh.bounds()?;
+        let diagonal = (0..3).map(|k| f64::from(hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt();
+        if mesh.faces.is_empty() || diagonal <= 0.0 || !diagonal.is_finite() {
+            return None;
+        }
+        let centre = Point3::from([0, 1, 2].map(|k| (f64::from(lo[k]) + f64::from(hi[k])) / 2.0));
+        let vertices = mesh.vertices.iter().map(|v| Point3::from(v.map(f64::from))).collect();
+        let shape = TriMesh::new(vertices, mesh.faces.clone()).ok()?;
+        Some(Self { shape, centre, diagonal })
+    }
+}
+
+/// Two unit vectors across `n` (a unit vector), at right angles to it and to each other.
+pub(crate) fn axes_across(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    // Any vector not along n gives the plane across it.
+    let helper = if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let u = n.cross(&helper).normalize();
+    (u, n.cross(&u))
+}
+
 /// Rays cast from a mesh's faces into the mesh.
 struct Rays<'a> {
     mesh: &'a Mesh,
-    shape: TriMesh,
+    target: RayTarget,
     /// How far a ray goes at most: the mesh's size, so that rays into the open all count
     /// the same.
     reach: f64,
@@ -134,14 +164,9 @@ struct Rays<'a> {
 impl<'a> Rays<'a> {
     /// `None` for a mesh without faces or size.
     fn new(mesh: &'a Mesh) -> Option<Self> {
-        let (lo, hi) = mesh.bounds()?;
-        let reach = (0..3).map(|k| f64::from(hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt();
-        if mesh.faces.is_empty() || reach <= 0.0 || !reach.is_finite() {
-            return None;
-        }
-        let vertices = mesh.vertices.iter().map(|v| Point3::from(v.map(f64::from))).collect();
-        let shape = TriMesh::new(vertices, mesh.faces.clone()).ok()?;
-        Some(Self { mesh, shape, reach, lift: 1e-5 * reach })
+        let target = RayTarget::new(mesh)?;
+        let reach = target.diagonal;
+        Some(Self { mesh, target, reach, lift: 1e-5 * reach })
     }
 
     /// How much further, on average over [`LOOKS`] directions, rays from face `f`'s centre
@@ -155,7 +180,7 @@ impl<'a> Rays<'a> {
             let travelled: f64 = looks_around(n)
                 .map(|dir| {
                     let ray = Ray::new(centre + dir * self.lift, dir);
-                    self.shape.cast_local_ray(&ray, self.reach, false).unwrap_or(self.reach)
+                    self.target.shape.cast_local_ray(&ray, self.reach, false).unwrap_or(self.reach)
                 })
                 .sum();
             travelled / LOOKS as f64
@@ -166,10 +191,7 @@ impl<'a> Rays<'a> {
 
 /// [`LOOKS`] unit directions: `n` and 8 evenly round it, 45 degrees off.
 fn looks_around(n: Unit<Vector3<f64>>) -> impl Iterator<Item = Vector3<f64>> {
-    // Any vector not along n gives the plane across it.
-    let helper = if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
-    let u = n.cross(&helper).normalize();
-    let v = n.cross(&u);
+    let (u, v) = axes_across(&n);
     let around = (0..LOOKS - 1).map(move |i| {
         let angle = std::f64::consts::TAU * i as f64 / (LOOKS - 1) as f64;
         (n.into_inner() + u * angle.cos() + v * angle.sin()).normalize()

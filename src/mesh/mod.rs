@@ -27,6 +27,7 @@ pub mod transform;
 pub(crate) use disjoint_sets::DisjointSets;
 pub use error::MeshError;
 pub use facing::with_faces_facing_out;
+pub(crate) use facing::{RayTarget, axes_across};
 pub use files::{expand_mesh_paths, mesh_files_in};
 pub use fit::{FitOptions, FitTarget, MAX_FIT_ROUNDS, fit_to_points, fit_to_target};
 pub use folded_faces::without_folded_faces;

@@ -3,11 +3,11 @@
 //! wound outward shows none; an open sheet shows its back from half the views however it is
 //! wound, so the ground truth's own share is the floor to compare with.
 
-use parry3d_f64::na::{Point3, Vector3};
+use parry3d_f64::na::Vector3;
 use parry3d_f64::query::{Ray, RayCast};
-use parry3d_f64::shape::{FeatureId, TriMesh};
+use parry3d_f64::shape::FeatureId;
 
-use crate::mesh::Mesh;
+use crate::mesh::{Mesh, RayTarget, axes_across};
 
 /// Directions the mesh is seen from, spread evenly over the sphere.
 const VIEWS: usize = 32;
@@ -20,21 +20,13 @@ const RAYS_PER_SIDE: usize = 48;
 /// behind; `None` when no ray meets a face (no faces, no area). Indices must be valid
 /// ([`Mesh::validate`]).
 pub fn back_faces_seen(mesh: &Mesh) -> Option<f64> {
-    let (lo, hi) = mesh.bounds()?;
-    let centre = Point3::from([0, 1, 2].map(|k| (f64::from(lo[k]) + f64::from(hi[k])) / 2.0));
-    let radius = (0..3).map(|k| f64::from(hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt() / 2.0;
-    if mesh.faces.is_empty() || radius <= 0.0 || !radius.is_finite() {
-        return None;
-    }
-    let vertices = mesh.vertices.iter().map(|v| Point3::from(v.map(f64::from))).collect();
-    let shape = TriMesh::new(vertices, mesh.faces.clone()).ok()?;
+    let RayTarget { shape, centre, diagonal } = RayTarget::new(mesh)?;
+    let radius = diagonal / 2.0;
     let faces = mesh.faces.len() as u32;
     let (mut hits, mut backs) = (0usize, 0usize);
     for view in 0..VIEWS {
         let dir = fibonacci_direction(view, VIEWS);
-        let helper = if dir.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
-        let u = dir.cross(&helper).normalize();
-        let v = dir.cross(&u);
+        let (u, v) = axes_across(&dir);
         for i in 0..RAYS_PER_SIDE {
             for j in 0..RAYS_PER_SIDE {
                 // Cell centres across [-radius, radius] on both axes of the view's plane.

@@ -1,7 +1,8 @@
 //! How a mesh is put together, apart from where its surface lies: the share of edges on a
 //! boundary (used by one face), non-manifold (used by three or more) or between two faces
-//! wound opposite ways, and how many connected parts it has. The Chamfer distance cannot tell a closed box from a box-shaped
-//! heap of unconnected slivers; these can, and they are what a user sees first.
+//! wound opposite ways, and how many connected parts it has. The Chamfer distance cannot
+//! tell a closed box from a box-shaped heap of unconnected slivers; these can, and they are
+//! what a user sees first.
 
 use std::collections::HashMap;
 

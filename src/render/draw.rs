@@ -14,9 +14,9 @@ use crate::mesh::{Mesh, normalized, triangle_normal};
 ///
 /// Faces are shaded flat and from both sides (the normal facing the camera), since artist
 /// meshes are not always consistently wound; [`Coloring::BackFaces`] shows where a face is
-/// seen from behind. A mesh without faces is a point cloud: each point
-/// is a disc of `options.point_radius` pixels, lit by its normal when the mesh has normals and
-/// as if it faced the light when not. Faces that pass behind the camera are clipped at a near
+/// seen from behind. A mesh without faces is a point cloud: each point is a disc of
+/// `options.point_radius` pixels, lit by its normal when the mesh has normals and as if it
+/// faced the light when not. Faces that pass behind the camera are clipped at a near
 /// plane; degenerate faces draw nothing; an empty mesh gives the background. The output
 /// depends only on the inputs.
 pub fn render(mesh: &Mesh, options: &RenderOptions) -> Result<RgbImage, RenderError> {
