@@ -8,8 +8,8 @@ use std::process::Command;
 use meshstream::mesh::{Format, Mesh, ReadLimits, read_mesh_file, write_mesh};
 
 /// The meshes whose GLB is validated: a closed surface (computed normals), a surface with its
-/// own normals, an unused vertex and a degenerate face, and point clouds with and without
-/// normals.
+/// own normals, an unused vertex and a degenerate face, an open surface (a material drawn from
+/// both sides), and point clouds with and without normals.
 fn cases() -> Vec<(&'static str, Mesh)> {
     let tetra = Mesh::new(
         vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -21,6 +21,7 @@ fn cases() -> Vec<(&'static str, Mesh)> {
     let mut odd = tetra.clone();
     odd.vertices.push([5.0, 5.0, 5.0]);
     odd.faces.push([0, 0, 1]);
+    let open = Mesh::new(tetra.vertices.clone(), tetra.faces[..3].to_vec());
     let cloud = Mesh::new(tetra.vertices.clone(), vec![]);
     let mut cloud_with_normals = cloud.clone();
     cloud_with_normals.normals = Some(tetra.vertex_normals());
@@ -28,6 +29,7 @@ fn cases() -> Vec<(&'static str, Mesh)> {
         ("tetra", tetra),
         ("tetra-normals", with_normals),
         ("tetra-unused-degenerate", odd),
+        ("tetra-open", open),
         ("cloud", cloud),
         ("cloud-normals", cloud_with_normals),
     ];

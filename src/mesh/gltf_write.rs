@@ -1,8 +1,9 @@
-//! Binary glTF 2.0 (GLB) output: one buffer, one mesh with one primitive, one node, one scene.
-//! The JSON is built with `gltf-json`'s types and the container by `gltf::binary::Glb`.
+//! Binary glTF 2.0 (GLB) output: one buffer, one mesh with one primitive and its material,
+//! one node, one scene. The JSON is built with `gltf-json`'s types and the container by
+//! `gltf::binary::Glb`.
 
 use std::borrow::Cow;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 use gltf_json as json;
 use json::validation::Checked::Valid;
@@ -13,6 +14,12 @@ use super::{Mesh, MeshError};
 /// The unit normal written for a vertex that has none (an isolated or degenerate one): glTF
 /// requires every NORMAL to be unit length.
 const FALLBACK_NORMAL: [f32; 3] = [0.0, 0.0, 1.0];
+
+/// A surface's colour, linear RGBA: about the light grey `meshstream render` and the viewer
+/// draw. Without a material a viewer takes glTF's default, which is fully metallic and looks
+/// black under the plain lights most viewers have.
+const SURFACE_COLOR: [f32; 4] = [0.6, 0.6, 0.65, 1.0];
+const SURFACE_ROUGHNESS: f32 = 0.8;
 
 pub(crate) fn write(mesh: &Mesh) -> Result<Vec<u8>, MeshError> {
     if mesh.vertices.is_empty() {
@@ -42,10 +49,12 @@ pub(crate) fn write(mesh: &Mesh) -> Result<Vec<u8>, MeshError> {
         let normals = push_vec3s(&mut root, &mut bin, buffer, normals, None);
         attributes.insert(Valid(json::mesh::Semantic::Normals), normals);
     }
-    let (indices, mode) = if mesh.is_point_cloud() {
-        (None, json::mesh::Mode::Points)
+    let (indices, mode, material) = if mesh.is_point_cloud() {
+        (None, json::mesh::Mode::Points, None)
     } else {
-        (Some(push_indices(&mut root, &mut bin, buffer, &mesh.faces)), json::mesh::Mode::Triangles)
+        let indices = push_indices(&mut root, &mut bin, buffer, &mesh.faces);
+        let material = root.push(surface_material(seen_from_behind(mesh)));
+        (Some(indices), json::mesh::Mode::Triangles, Some(material))
     };
     root.buffers[buffer.value()].byte_length = USize64::from(bin.len());
 
@@ -54,7 +63,7 @@ pub(crate) fn write(mesh: &Mesh) -> Result<Vec<u8>, MeshError> {
         extensions: Default::default(),
         extras: Default::default(),
         indices,
-        material: None,
+        material,
         mode: Valid(mode),
         targets: None,
     };
@@ -89,6 +98,36 @@ pub(crate) fn write(mesh: &Mesh) -> Result<Vec<u8>, MeshError> {
         bin: Some(Cow::Owned(bin)),
     };
     glb.to_vec().map_err(|e| MeshError::invalid(format!("cannot write GLB: {e}")))
+}
+
+/// A plain matte material, drawn from both sides when `double_sided`.
+fn surface_material(double_sided: bool) -> json::Material {
+    json::Material {
+        name: Some("surface".into()),
+        double_sided,
+        pbr_metallic_roughness: json::material::PbrMetallicRoughness {
+            base_color_factor: json::material::PbrBaseColorFactor(SURFACE_COLOR),
+            metallic_factor: json::material::StrengthFactor(0.0),
+            roughness_factor: json::material::StrengthFactor(SURFACE_ROUGHNESS),
+            ..Default::default()
+        },
+        ..Default::default()
+    }
+}
+
+/// Whether some face of `mesh` can be seen from behind: unless the surface is closed and
+/// wound alike (each edge, corners welded by position, run once each way by its two faces),
+/// an open sheet, a fin or a face wound against its neighbours shows its back from some side.
+/// glTF's default is to draw front sides only, which shows each such face as a hole; a
+/// closed surface keeps that default, as its back sides face its inside.
+fn seen_from_behind(mesh: &Mesh) -> bool {
+    let mut runs: HashMap<(u32, u32), usize> = HashMap::new();
+    for [a, b, c] in mesh.welded_faces() {
+        for edge in [(a, b), (b, c), (c, a)] {
+            *runs.entry(edge).or_default() += 1;
+        }
+    }
+    runs.iter().any(|(&(p, q), &n)| n != 1 || runs.get(&(q, p)) != Some(&1))
 }
 
 fn unit(n: [f32; 3]) -> [f32; 3] {
@@ -185,4 +224,53 @@ fn push_accessor(
         normalized: false,
         sparse: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::primitives::cuboid;
+
+    /// The material of the written file's one primitive, as a glTF reader sees it.
+    fn material_of(mesh: &Mesh) -> Option<(bool, f32, f32)> {
+        let glb = write(mesh).expect("a valid mesh is written");
+        let document = gltf::Gltf::from_slice(&glb).expect("the file is read back").document;
+        let primitive = document.meshes().next()?.primitives().next()?;
+        let material = primitive.material();
+        let pbr = material.pbr_metallic_roughness();
+        material.index()?;
+        Some((material.double_sided(), pbr.metallic_factor(), pbr.roughness_factor()))
+    }
+
+    #[test]
+    fn a_closed_surface_wound_alike_is_drawn_from_the_front_only() {
+        assert_eq!(material_of(&cuboid([1.0, 2.0, 3.0])), Some((false, 0.0, SURFACE_ROUGHNESS)));
+        // Corners split along seams, as files split them for normals, are still one surface.
+        let box_ = cuboid([1.0, 1.0, 1.0]);
+        let split = Mesh::new(
+            box_.faces.iter().flat_map(|f| box_.triangle(f)).collect(),
+            (0..box_.faces.len() as u32).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect(),
+        );
+        assert_eq!(material_of(&split).map(|m| m.0), Some(false));
+    }
+
+    #[test]
+    fn a_surface_seen_from_behind_somewhere_is_drawn_from_both_sides() {
+        let mut open = cuboid([1.0, 1.0, 1.0]);
+        open.faces.truncate(10);
+        let mut turned = cuboid([1.0, 1.0, 1.0]);
+        turned.faces[0].swap(1, 2);
+        let mut finned = cuboid([1.0, 1.0, 1.0]);
+        finned.vertices.push([0.0, 0.0, -2.0]);
+        finned.faces.push([0, 1, 8]);
+        for mesh in [open, turned, finned] {
+            assert_eq!(material_of(&mesh).map(|m| m.0), Some(true), "{mesh:?}");
+        }
+    }
+
+    #[test]
+    fn a_point_cloud_has_no_material() {
+        let cloud = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0]], Vec::new());
+        assert_eq!(material_of(&cloud), None);
+    }
 }
