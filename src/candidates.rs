@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use crate::mesh::{
     FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, with_faces_facing_out,
-    with_small_holes_filled, without_folded_faces, without_stray_parts,
+    with_small_holes_filled, without_folded_faces, without_stray_parts, without_stray_sheets,
 };
 use crate::metrics::point_set_distances;
 use crate::model::{
@@ -43,15 +43,16 @@ pub const DEFAULT_WELD_RADIUS: u16 = 1;
 pub const MAX_WELD_RADIUS: u16 = 4;
 
 /// How a reconstruction ends each candidate before judging it: its corners welded, then
-/// fitted to the input points (and the winner's folded faces and stray parts dropped).
+/// fitted to the input points (and the winner's folded faces, stray parts and sheets dropped).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Ending {
     /// Corners within this many grid cells merge, and faces split at corners this close to
     /// their open edges ([`weld_near_corners`]); 0 keeps them apart.
     pub weld_radius: u16,
     /// Fitting to the input points, after which the winner drops its folded faces and the
-    /// parts the points do not need ([`without_folded_faces`], [`without_stray_parts`]);
-    /// `None` keeps the corners on the grid and every face.
+    /// parts and sheets the points do not need ([`without_folded_faces`],
+    /// [`without_stray_parts`], [`without_stray_sheets`]); `None` keeps the corners on the
+    /// grid and every face.
     pub fit: Option<FitOptions>,
     /// A fitted winner's loops of at most this many open edges are closed where the input
     /// points cover them ([`with_small_holes_filled`]); below 3 none are.
@@ -255,15 +256,16 @@ impl Judge {
     /// done most of the moving, and refitting cost about as much as fitting all candidates.
     ///
     /// A fitted winner then loses the faces that lie on other faces ([`without_folded_faces`])
-    /// and the parts its input points do not need ([`without_stray_parts`]), has its small
-    /// holes closed ([`with_small_holes_filled`]) and its faces turned to face out
-    /// ([`with_faces_facing_out`]).
+    /// and the parts and sheets its input points do not need ([`without_stray_parts`],
+    /// [`without_stray_sheets`]), has its small holes closed ([`with_small_holes_filled`])
+    /// and its faces turned to face out ([`with_faces_facing_out`]).
     pub fn finish(&self, winner: Finished) -> Finished {
         let finished = self.finish_fit(winner);
         match (&self.ending.fit, &self.target) {
             (Some(_), Some(target)) => {
                 let unfolded = without_folded_faces(&finished.mesh);
                 let kept = without_stray_parts(&unfolded, &self.cloud.vertices, self.seed);
+                let kept = without_stray_sheets(&kept, &self.cloud.vertices, self.seed);
                 let (closed, holes) =
                     with_small_holes_filled(&kept, target, self.ending.max_hole_edges);
                 // Last, so that the faces that closed holes turn with their surfaces.

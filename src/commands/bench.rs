@@ -9,7 +9,7 @@ use meshstream::mesh::{
     DEFAULT_MAX_HOLE_EDGES, FitOptions, FitTarget, Format, Mesh, REFERENCE_POINTS, ReadLimits,
     farthest_point_sampling, fit_to_points, input_clouds, primitives, read_mesh, sample_surface,
     with_faces_facing_out, with_small_holes_filled, without_folded_faces, without_stray_parts,
-    write_mesh,
+    without_stray_sheets, write_mesh,
 };
 use meshstream::metrics::{MeshQuality, MetricOptions, mesh_distances};
 use meshstream::render::{RenderOptions, render_grid};
@@ -167,6 +167,26 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             ),
             format!("{:.1} ms", t.as_secs_f64() * 1e3),
             format!("{:.0} parts/s", strays as f64 / t.as_secs_f64()),
+        ]);
+    }
+    // Fins off the sphere's edges, each a sheet of one face the points do not need.
+    for fins in [4, 16] {
+        let mut finned = truth.clone();
+        for i in 0..fins {
+            let [a, b, _] = truth.faces[i * truth.faces.len() / fins];
+            let [p, q] = [a, b].map(|v| truth.vertices[v as usize]);
+            finned.vertices.push(std::array::from_fn(|k| 0.65 * (p[k] + q[k])));
+            finned.faces.push([b, a, finned.vertices.len() as u32 - 1]);
+        }
+        let t = time_per_run(budget, || without_stray_sheets(&finned, &points, 0));
+        table.add_row([
+            "stray sheets".to_string(),
+            format!(
+                "{} faces, {fins} fins off its edges, {REFERENCE_POINTS} points",
+                finned.faces.len()
+            ),
+            format!("{:.1} ms", t.as_secs_f64() * 1e3),
+            format!("{:.0} sheets/s", fins as f64 / t.as_secs_f64()),
         ]);
     }
     // A whole mesh decoded twice over: every edge non-manifold, every face lying on another.

@@ -162,8 +162,9 @@ pub struct DecodeOptions {
     /// input points; points requests only. `None`: 1.
     pub candidates: Option<usize>,
     /// Rounds of fitting each finished candidate's corners to the input points (`mesh::fit`),
-    /// after which the winner drops its folded faces and the parts the points do not need
-    /// ([`crate::mesh::without_folded_faces`], [`crate::mesh::without_stray_parts`]); points requests only. Its faces then arrive
+    /// after which the winner drops its folded faces and the parts and sheets the points do not
+    /// need ([`crate::mesh::without_folded_faces`], [`crate::mesh::without_stray_parts`],
+    /// [`crate::mesh::without_stray_sheets`]); points requests only. Its faces then arrive
     /// together at the end, as with candidates. `None` or 0: the corners as decoded, faces as
     /// they come.
     pub fit_rounds: Option<usize>,

@@ -41,7 +41,7 @@ pub use points::{
     reference_points, spread_points,
 };
 pub use sample::sample_surface;
-pub use stray_parts::{STRAY_TOLERANCE, without_stray_parts};
+pub use stray_parts::{STRAY_TOLERANCE, without_stray_parts, without_stray_sheets};
 
 /// What welds two corners: their exact position. Adding 0.0 turns -0.0 into 0.0, so that
 /// the two zeros weld.

@@ -1,13 +1,15 @@
-//! Stray parts: connected parts of a reconstruction that its input points do not need.
+//! Stray parts and sheets: connected parts of a reconstruction, and sheets hanging off its
+//! non-manifold edges, that its input points do not need.
 //!
 //! Why: the shipped model often decodes a second layer of faces over or inside the surface it
-//! already made, or a sliver beside it, each a part of its own. Such a part brings the mesh no
-//! closer to the input points, and a user sees it as clutter (z-fighting, hidden faces, more
-//! parts and open edges). Dropping the parts the points can do without is judged by the
-//! Chamfer distance that chooses among candidates, with the points' half measured to the
-//! surface itself (`docs/decisions.md`, "Stray parts").
+//! already made, or a sliver beside it, each a part of its own or a sheet grown from an edge
+//! of the surface (which that edge's third face makes non-manifold). Such a piece brings the
+//! mesh no closer to the input points, and a user sees it as clutter (z-fighting, hidden
+//! faces, more parts, open and non-manifold edges). Dropping the pieces the points can do
+//! without is judged by the Chamfer distance that chooses among candidates, with the points'
+//! half measured to the surface itself (`docs/decisions.md`, "Stray parts").
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use parry3d_f64::na::Point3;
@@ -15,7 +17,7 @@ use parry3d_f64::query::PointQueryWithLocation;
 use parry3d_f64::shape::TriMesh;
 
 use super::sample::surface_samples;
-use super::{DisjointSets, Mesh, triangle_area};
+use super::{DisjointSets, Mesh, triangle_area, undirected};
 
 /// Surface samples that stand for a mesh's half of the Chamfer distance.
 const SAMPLES: usize = 4096;
@@ -38,28 +40,96 @@ pub const STRAY_TOLERANCE: f64 = 0.01;
 /// ([`Mesh::without_unused_vertices`] drops them for a file). A mesh of one part, without
 /// area, or without points comes back as it is; indices must be valid ([`Mesh::validate`]).
 pub fn without_stray_parts(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> Mesh {
-    let part_of = face_parts(mesh);
-    let Some(mut weights) = PartWeights::new(mesh, &part_of, points, seed) else {
+    without_unneeded(mesh, &face_parts(mesh), |_| true, points, seed)
+}
+
+/// `mesh` without the sheets hanging off its non-manifold edges that the input `points` do
+/// not need, judged as [`without_stray_parts`] judges parts. A sheet is a set of faces joined
+/// across edges of exactly two faces (corners welded by position); only those with an edge of
+/// three or more faces are weighed (a fin, a flap, a second layer grown from the surface's
+/// edge), and a sheet stays when the rest would fall into more parts without it (it may be
+/// all that joins them).
+pub fn without_stray_sheets(mesh: &Mesh, points: &[[f32; 3]], seed: u64) -> Mesh {
+    let (sheet_of, hanging) = face_sheets(mesh);
+    without_unneeded(mesh, &sheet_of, |sheet| hanging.contains(&sheet), points, seed)
+}
+
+/// `mesh` without the pieces (`piece_of` each face) for which `weighed` holds and which the
+/// points do not need, smallest in area first: a piece goes when the rest stays within
+/// [`STRAY_TOLERANCE`] of the whole mesh's Chamfer distance and makes no more parts than
+/// before. The largest piece always stays.
+fn without_unneeded(
+    mesh: &Mesh,
+    piece_of: &[usize],
+    weighed: impl Fn(usize) -> bool,
+    points: &[[f32; 3]],
+    seed: u64,
+) -> Mesh {
+    let Some(mut weights) = PartWeights::new(mesh, piece_of, points, seed) else {
         return mesh.clone();
     };
     let mut areas: HashMap<usize, f64> = HashMap::new();
-    for (f, &part) in mesh.faces.iter().zip(&part_of) {
-        *areas.entry(part).or_default() += triangle_area(mesh.triangle(f));
+    for (f, &piece) in mesh.faces.iter().zip(piece_of) {
+        *areas.entry(piece).or_default() += triangle_area(mesh.triangle(f));
     }
     let mut by_area: Vec<(usize, f64)> = areas.into_iter().collect();
     by_area.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
     by_area.pop();
     let whole = weights.chamfer(&weights.nearest);
-    for (part, _) in by_area {
-        if let Some(nearest) = weights.nearest_without(part)
-            && weights.chamfer_without(part, &nearest) <= whole * (1.0 + STRAY_TOLERANCE)
-        {
-            weights.dropped.push(part);
+    let mut parts = parts_left(mesh, piece_of, &[]);
+    for (piece, _) in by_area.into_iter().filter(|&(piece, _)| weighed(piece)) {
+        let Some(nearest) = weights.nearest_without(piece) else { continue };
+        if weights.chamfer_without(piece, &nearest) > whole * (1.0 + STRAY_TOLERANCE) {
+            continue;
+        }
+        weights.dropped.push(piece);
+        let parts_after = parts_left(mesh, piece_of, &weights.dropped);
+        if parts_after > parts {
+            weights.dropped.pop();
+        } else {
             weights.nearest = nearest;
+            parts = parts_after;
         }
     }
-    let kept = mesh.faces.iter().zip(&part_of).filter(|(_, p)| !weights.dropped.contains(p));
+    let kept = mesh.faces.iter().zip(piece_of).filter(|(_, p)| !weights.dropped.contains(p));
     Mesh { faces: kept.map(|(f, _)| *f).collect(), ..mesh.clone() }
+}
+
+/// How many parts the faces of `mesh` make without those of the `dropped` pieces.
+fn parts_left(mesh: &Mesh, piece_of: &[usize], dropped: &[usize]) -> usize {
+    let kept = mesh.faces.iter().zip(piece_of).filter(|(_, p)| !dropped.contains(p));
+    let rest = Mesh { faces: kept.map(|(f, _)| *f).collect(), ..mesh.clone() };
+    face_parts(&rest).into_iter().collect::<HashSet<_>>().len()
+}
+
+/// Each face's sheet (faces joined across edges of exactly two faces, corners welded by
+/// position; a collapsed face is a sheet of its own), and the sheets with an edge of three or
+/// more faces; indices must be valid.
+fn face_sheets(mesh: &Mesh) -> (Vec<usize>, HashSet<usize>) {
+    let canonical = mesh.first_vertex_at_each_position();
+    let corners = |f: &[u32; 3]| f.map(|i| canonical[i as usize]);
+    let mut faces_on: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
+    for (i, f) in mesh.faces.iter().enumerate() {
+        let [a, b, c] = corners(f);
+        if a != b && b != c && c != a {
+            for (p, q) in [(a, b), (b, c), (c, a)] {
+                faces_on.entry(undirected(p, q)).or_default().push(i);
+            }
+        }
+    }
+    let mut sets = DisjointSets::new(mesh.faces.len());
+    for faces in faces_on.values().filter(|faces| faces.len() == 2) {
+        sets.union(faces[0], faces[1]);
+    }
+    // Each sheet is named by its first face, whichever order the map's edges joined it in,
+    // so that the pieces are weighed in the same order on every run.
+    let mut first_of: HashMap<usize, usize> = HashMap::new();
+    let sheet_of: Vec<usize> = (0..mesh.faces.len())
+        .map(|f| *first_of.entry(sets.find(f).unwrap_or(f)).or_insert(f))
+        .collect();
+    let hanging =
+        faces_on.values().filter(|faces| faces.len() > 2).flatten().map(|&f| sheet_of[f]).collect();
+    (sheet_of, hanging)
 }
 
 /// Each face's part: the representative of its vertices' set once every face joins its
@@ -216,6 +286,50 @@ mod tests {
         let points = points_on(&pair);
         assert_eq!(without_stray_parts(&with_parts(&pair, &hidden), &points, 0).faces, pair.faces);
         assert_eq!(topology(&without_stray_parts(&pair, &points, 0)).parts, 2);
+    }
+
+    #[test]
+    fn a_fin_off_a_box_goes_unless_the_points_show_it() {
+        let big = cuboid([1.0, 1.0, 1.0]);
+        let mut finned = big.clone();
+        finned.vertices.push([0.0, -0.9, -0.9]);
+        // On the box's edge from corner 0 to 1, which the fin makes non-manifold.
+        finned.faces.push([1, 0, 8]);
+        assert_eq!(topology(&finned).non_manifold_edges, 1);
+        let cleaned = without_stray_sheets(&finned, &points_on(&big), 0);
+        assert_eq!(cleaned.faces, big.faces);
+        assert_eq!(cleaned.vertices, finned.vertices);
+        assert_eq!(without_stray_sheets(&finned, &points_on(&finned), 0), finned);
+    }
+
+    #[test]
+    fn sheets_are_named_by_their_first_face() {
+        // Named by a union-find root, a sheet's name (and so the order in which sheets of
+        // one area are weighed) would follow the order a hash map gives its edges, another
+        // on every run.
+        let mut finned = cuboid([1.0, 1.0, 1.0]);
+        finned.vertices.push([0.0, -0.9, -0.9]);
+        finned.faces.insert(5, [1, 0, 8]);
+        for _ in 0..8 {
+            let (sheet_of, hanging) = face_sheets(&finned);
+            let mut expected = vec![0; 13];
+            expected[5] = 5;
+            assert_eq!(sheet_of, expected);
+            assert_eq!(hanging, HashSet::from([0, 5]));
+        }
+    }
+
+    #[test]
+    fn a_sheet_that_joins_two_parts_stays() {
+        let mut joined = with_parts(
+            &cuboid([1.0, 1.0, 1.0]),
+            &cuboid([1.0, 1.0, 1.0]).translated([2.0, 0.0, 0.0]),
+        );
+        // A bridge from the first box's edge 1-3 to the second's 8-10 (its corners 0 and 2).
+        joined.faces.extend([[1, 8, 10], [1, 10, 3]]);
+        assert_eq!(topology(&joined).parts, 1);
+        let boxes = Mesh { faces: joined.faces[..24].to_vec(), ..joined.clone() };
+        assert_eq!(without_stray_sheets(&joined, &points_on(&boxes), 0), joined);
     }
 
     #[test]
