@@ -25,8 +25,9 @@ const SAMPLES: usize = 4096;
 /// At most this many of the input points (evenly taken) stand for theirs.
 const PROBES: usize = 2048;
 
-/// A part is dropped when the mesh without it (and without the parts dropped before it) is
-/// at most this share further from the input points, in Chamfer distance, than the whole mesh.
+/// A part (or a sheet) is dropped when the mesh without it (and without those dropped before
+/// it) is at most this share further from the input points, in Chamfer distance, than the
+/// mesh it was taken from.
 pub const STRAY_TOLERANCE: f64 = 0.01;
 
 /// `mesh` without the connected parts (faces joined through shared vertices) that the input
@@ -65,7 +66,7 @@ fn without_unneeded(
     points: &[[f32; 3]],
     seed: u64,
 ) -> Mesh {
-    let Some(mut weights) = PartWeights::new(mesh, piece_of, points, seed) else {
+    let Some(mut weights) = PieceWeights::new(mesh, piece_of, points, seed) else {
         return mesh.clone();
     };
     let mut areas: HashMap<usize, f64> = HashMap::new();
@@ -147,26 +148,26 @@ fn face_parts(mesh: &Mesh) -> Vec<usize> {
     mesh.faces.iter().map(|f| sets.find(f[0] as usize).unwrap_or(0)).collect()
 }
 
-/// What the Chamfer distance of a mesh without some of its parts is computed from.
-struct PartWeights<'a> {
+/// What the Chamfer distance of a mesh without some of its pieces is computed from.
+struct PieceWeights<'a> {
     mesh: &'a Mesh,
-    part_of: &'a [usize],
-    /// Surface samples' parts and distances to the nearest probe.
-    sample_parts: Vec<usize>,
+    piece_of: &'a [usize],
+    /// Surface samples' pieces and distances to the nearest probe.
+    sample_pieces: Vec<usize>,
     accuracy: Vec<f64>,
     /// The input points that stand for all of them.
     probes: Vec<Point3<f64>>,
-    /// Each probe's distance to the faces of the parts not dropped, and the part of the
+    /// Each probe's distance to the faces of the pieces not dropped, and the piece of the
     /// nearest face.
     nearest: Vec<(f64, usize)>,
     dropped: Vec<usize>,
 }
 
-impl<'a> PartWeights<'a> {
-    /// `None` when there is nothing to weigh: one part, no area, or no points.
-    fn new(mesh: &'a Mesh, part_of: &'a [usize], points: &[[f32; 3]], seed: u64) -> Option<Self> {
-        let first = part_of.first()?;
-        if part_of.iter().all(|p| p == first) || points.is_empty() {
+impl<'a> PieceWeights<'a> {
+    /// `None` when there is nothing to weigh: one piece, no area, or no points.
+    fn new(mesh: &'a Mesh, piece_of: &'a [usize], points: &[[f32; 3]], seed: u64) -> Option<Self> {
+        let first = piece_of.first()?;
+        if piece_of.iter().all(|p| p == first) || points.is_empty() {
             return None;
         }
         let probes: Vec<[f32; 3]> =
@@ -179,8 +180,8 @@ impl<'a> PartWeights<'a> {
         let accuracy = nearest_probes.iter().map(|n| f64::from(n.distance).sqrt());
         let mut weights = Self {
             mesh,
-            part_of,
-            sample_parts: drawn.iter().map(|s| part_of[s.face]).collect(),
+            piece_of,
+            sample_pieces: drawn.iter().map(|s| piece_of[s.face]).collect(),
             accuracy: accuracy.collect(),
             probes: probes.iter().map(|p| Point3::from(p.map(f64::from))).collect(),
             nearest: Vec::new(),
@@ -191,41 +192,41 @@ impl<'a> PartWeights<'a> {
         Some(weights)
     }
 
-    /// The faces of the parts neither dropped nor `part`; `None` when there are none.
-    fn surface_without(&self, part: Option<usize>) -> Option<Surface> {
-        let gone = |p: &usize| self.dropped.contains(p) || part == Some(*p);
+    /// The faces of the pieces neither dropped nor `piece`; `None` when there are none.
+    fn surface_without(&self, piece: Option<usize>) -> Option<Surface> {
+        let gone = |p: &usize| self.dropped.contains(p) || piece == Some(*p);
         let faces: Vec<usize> =
-            (0..self.mesh.faces.len()).filter(|&f| !gone(&self.part_of[f])).collect();
+            (0..self.mesh.faces.len()).filter(|&f| !gone(&self.piece_of[f])).collect();
         let vertices = self.mesh.vertices.iter().map(|v| Point3::from(v.map(f64::from))).collect();
         let indices = faces.iter().map(|&f| self.mesh.faces[f]).collect();
         let mesh = TriMesh::new(vertices, indices).ok()?;
-        Some(Surface { mesh, parts: faces.iter().map(|&f| self.part_of[f]).collect() })
+        Some(Surface { mesh, pieces: faces.iter().map(|&f| self.piece_of[f]).collect() })
     }
 
-    /// Each probe's nearest face without `part` as well: only probes whose nearest face was
-    /// in `part` move. `None` when no face would be left.
-    fn nearest_without(&self, part: usize) -> Option<Vec<(f64, usize)>> {
-        let rest = self.surface_without(Some(part))?;
+    /// Each probe's nearest face without `piece` as well: only probes whose nearest face was
+    /// in `piece` move. `None` when no face would be left.
+    fn nearest_without(&self, piece: usize) -> Option<Vec<(f64, usize)>> {
+        let rest = self.surface_without(Some(piece))?;
         let moved = |(p, &(d, near)): (&Point3<f64>, &(f64, usize))| {
-            if near == part { rest.nearest(p) } else { (d, near) }
+            if near == piece { rest.nearest(p) } else { (d, near) }
         };
         Some(self.probes.iter().zip(&self.nearest).map(moved).collect())
     }
 
     /// The Chamfer distance with the probes' distances `nearest`, over the samples of the
-    /// parts not dropped.
+    /// pieces not dropped.
     fn chamfer(&self, nearest: &[(f64, usize)]) -> f64 {
         self.chamfer_over(nearest, |p| !self.dropped.contains(p))
     }
 
-    /// As [`Self::chamfer`], without `part`'s samples as well.
-    fn chamfer_without(&self, part: usize, nearest: &[(f64, usize)]) -> f64 {
-        self.chamfer_over(nearest, |p| *p != part && !self.dropped.contains(p))
+    /// As [`Self::chamfer`], without `piece`'s samples as well.
+    fn chamfer_without(&self, piece: usize, nearest: &[(f64, usize)]) -> f64 {
+        self.chamfer_over(nearest, |p| *p != piece && !self.dropped.contains(p))
     }
 
     fn chamfer_over(&self, nearest: &[(f64, usize)], kept: impl Fn(&usize) -> bool) -> f64 {
         let (sum, n) = self
-            .sample_parts
+            .sample_pieces
             .iter()
             .zip(&self.accuracy)
             .filter(|(p, _)| kept(p))
@@ -237,18 +238,18 @@ impl<'a> PartWeights<'a> {
     }
 }
 
-/// Some of a mesh's faces, ready for nearest-face queries, with each one's part.
+/// Some of a mesh's faces, ready for nearest-face queries, with each one's piece.
 struct Surface {
     mesh: TriMesh,
-    parts: Vec<usize>,
+    pieces: Vec<usize>,
 }
 
 impl Surface {
-    /// The distance from `point` to the nearest face, and that face's part.
+    /// The distance from `point` to the nearest face, and that face's piece.
     fn nearest(&self, point: &Point3<f64>) -> (f64, usize) {
         let (projection, (face, _)) = self.mesh.project_local_point_and_get_location(point, false);
-        let part = self.parts.get(face as usize).copied().unwrap_or(usize::MAX);
-        ((projection.point - point).norm(), part)
+        let piece = self.pieces.get(face as usize).copied().unwrap_or(usize::MAX);
+        ((projection.point - point).norm(), piece)
     }
 }
 
