@@ -16,8 +16,8 @@ use super::{Mesh, MeshError};
 const FALLBACK_NORMAL: [f32; 3] = [0.0, 0.0, 1.0];
 
 /// A surface's colour, linear RGBA: about the light grey `meshstream render` and the viewer
-/// draw. Without a material a viewer takes glTF's default, which is fully metallic and looks
-/// black under the plain lights most viewers have.
+/// draw. Without a material a viewer takes glTF's default, which is fully metallic: black
+/// wherever a face turns from the light, unless the viewer lights it with an environment map.
 const SURFACE_COLOR: [f32; 4] = [0.6, 0.6, 0.65, 1.0];
 const SURFACE_ROUGHNESS: f32 = 0.8;
 
