@@ -7,13 +7,12 @@
 //! a hole, and a closed surface with mixed winding has no inside for a pipeline to fill
 //! (`docs/decisions.md`, "Faces that face out").
 
-use std::collections::{HashMap, VecDeque};
-
 use parry3d_f64::na::{Point3, Unit, Vector3};
 use parry3d_f64::query::{Ray, RayCast};
 use parry3d_f64::shape::TriMesh;
 
-use super::{Mesh, triangle_area, triangle_normal, undirected};
+use super::surfaces::Surfaces;
+use super::{Mesh, triangle_area, triangle_normal};
 
 /// Directions each face looks in on each of its sides: along its normal and 8 around it, 45
 /// degrees off, so that one ray grazing a neighbour does not decide.
@@ -55,74 +54,6 @@ pub fn with_faces_facing_out(mesh: &Mesh) -> (Mesh, usize) {
         face.swap(1, 2);
     }
     (out, turned.iter().filter(|t| **t).count())
-}
-
-/// The faces joined across edges that exactly two of them share, each set wound alike.
-struct Surfaces {
-    /// Each surface's faces.
-    members: Vec<Vec<usize>>,
-    /// Whether a face has to turn to agree with the first face of its surface.
-    turned_alike: Vec<bool>,
-}
-
-impl Surfaces {
-    fn of(mesh: &Mesh) -> Self {
-        let canonical = mesh.first_vertex_at_each_position();
-        let welded: Vec<Option<[u32; 3]>> = mesh
-            .faces
-            .iter()
-            .map(|f| {
-                let [a, b, c] = f.map(|i| canonical[i as usize]);
-                (a != b && b != c && c != a).then_some([a, b, c])
-            })
-            .collect();
-        // Each undirected edge's faces, and whether each runs along it from low to high.
-        let mut along: HashMap<(u32, u32), Vec<(usize, bool)>> = HashMap::new();
-        for (f, corners) in welded.iter().enumerate() {
-            let Some([a, b, c]) = *corners else { continue };
-            for (p, q) in [(a, b), (b, c), (c, a)] {
-                along.entry(undirected(p, q)).or_default().push((f, p < q));
-            }
-        }
-        let mut neighbours: Vec<Vec<(usize, bool)>> = vec![Vec::new(); mesh.faces.len()];
-        for faces in along.values() {
-            if let [(f, f_up), (g, g_up)] = faces[..] {
-                // Two faces wound alike run along their shared edge in opposite directions.
-                let alike = f_up != g_up;
-                neighbours[f].push((g, alike));
-                neighbours[g].push((f, alike));
-            }
-        }
-        // In face order, not the map's, which differs from run to run: on a surface that
-        // cannot be wound alike the walk's order decides, and an answer must not change.
-        for faces in &mut neighbours {
-            faces.sort_unstable();
-        }
-        let mut seen = vec![false; mesh.faces.len()];
-        let mut turned_alike = vec![false; mesh.faces.len()];
-        let mut members = Vec::new();
-        for start in (0..mesh.faces.len()).filter(|&f| welded[f].is_some()) {
-            if seen[start] {
-                continue;
-            }
-            seen[start] = true;
-            let mut surface = vec![start];
-            let mut queue = VecDeque::from([start]);
-            while let Some(f) = queue.pop_front() {
-                for &(g, alike) in &neighbours[f] {
-                    // On a one-sided surface (a Moebius strip) the first way round wins.
-                    if !seen[g] {
-                        seen[g] = true;
-                        turned_alike[g] = turned_alike[f] ^ !alike;
-                        surface.push(g);
-                        queue.push_back(g);
-                    }
-                }
-            }
-            members.push(surface);
-        }
-        Self { members, turned_alike }
-    }
 }
 
 /// A mesh's faces ready for ray casts, with its bounding box's centre and diagonal.

@@ -21,6 +21,7 @@ pub mod primitives;
 mod sample;
 mod stl;
 mod stray_parts;
+mod surfaces;
 mod text;
 pub mod transform;
 

@@ -17,7 +17,8 @@ use parry3d_f64::query::PointQueryWithLocation;
 use parry3d_f64::shape::TriMesh;
 
 use super::sample::surface_samples;
-use super::{DisjointSets, Mesh, triangle_area, undirected};
+use super::surfaces::{Surfaces, welded_edges};
+use super::{DisjointSets, Mesh, triangle_area};
 
 /// Surface samples that stand for a mesh's half of the Chamfer distance.
 const SAMPLES: usize = 4096;
@@ -103,33 +104,22 @@ fn parts_left(mesh: &Mesh, piece_of: &[usize], dropped: &[usize]) -> usize {
     face_parts(&rest).into_iter().collect::<HashSet<_>>().len()
 }
 
-/// Each face's sheet (faces joined across edges of exactly two faces, corners welded by
-/// position; a collapsed face is a sheet of its own), and the sheets with an edge of three or
-/// more faces; indices must be valid.
+/// Each face's sheet (its surface, named by its first face; a collapsed face is a sheet of
+/// its own), and the sheets with an edge of three or more faces; indices must be valid.
 fn face_sheets(mesh: &Mesh) -> (Vec<usize>, HashSet<usize>) {
-    let canonical = mesh.first_vertex_at_each_position();
-    let corners = |f: &[u32; 3]| f.map(|i| canonical[i as usize]);
-    let mut faces_on: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
-    for (i, f) in mesh.faces.iter().enumerate() {
-        let [a, b, c] = corners(f);
-        if a != b && b != c && c != a {
-            for (p, q) in [(a, b), (b, c), (c, a)] {
-                faces_on.entry(undirected(p, q)).or_default().push(i);
-            }
+    let edges = welded_edges(mesh);
+    let mut sheet_of: Vec<usize> = (0..mesh.faces.len()).collect();
+    for faces in Surfaces::along(&edges, mesh.faces.len()).members {
+        for &f in &faces {
+            sheet_of[f] = faces[0];
         }
     }
-    let mut sets = DisjointSets::new(mesh.faces.len());
-    for faces in faces_on.values().filter(|faces| faces.len() == 2) {
-        sets.union(faces[0], faces[1]);
-    }
-    // Each sheet is named by its first face, whichever order the map's edges joined it in,
-    // so that the pieces are weighed in the same order on every run.
-    let mut first_of: HashMap<usize, usize> = HashMap::new();
-    let sheet_of: Vec<usize> = (0..mesh.faces.len())
-        .map(|f| *first_of.entry(sets.find(f).unwrap_or(f)).or_insert(f))
+    let hanging = edges
+        .values()
+        .filter(|faces| faces.len() > 2)
+        .flatten()
+        .map(|&(f, _)| sheet_of[f])
         .collect();
-    let hanging =
-        faces_on.values().filter(|faces| faces.len() > 2).flatten().map(|&f| sheet_of[f]).collect();
     (sheet_of, hanging)
 }
 
