@@ -166,7 +166,7 @@ fn resolve(index: &[u8], defined: usize, what: &str) -> Result<u32, MeshError> {
     let i: i64 = parse(index, FORMAT, what)?;
     let resolved = if i > 0 { i - 1 } else { defined as i64 + i };
     if i == 0 || resolved < 0 || resolved >= defined as i64 {
-        let message = format!("{what} index {i} with {defined} {what}s defined so far");
+        let message = format!("{what} index {i} with {defined} defined so far");
         return Err(MeshError::malformed(FORMAT, message));
     }
     Ok(resolved as u32)

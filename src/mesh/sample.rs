@@ -50,8 +50,11 @@ pub(crate) fn surface_samples(
         return Err(MeshError::invalid("no faces to sample"));
     }
     let areas: Vec<f64> = mesh.faces.iter().map(|f| triangle_area(mesh.triangle(f))).collect();
-    // Rejects a zero total (every face degenerate); zero-area faces are simply never chosen.
-    // (Areas are f64, so even faces spanning the whole f32 range have a finite area.)
+    // Zero-area faces are simply never chosen. (Areas are f64, so even faces spanning the
+    // whole f32 range have a finite area.)
+    if areas.iter().all(|&a| a == 0.0) {
+        return Err(MeshError::invalid("no surface to sample: every face has no area"));
+    }
     let choose = WeightedIndex::new(&areas)
         .map_err(|e| MeshError::invalid(format!("cannot sample the surface by area: {e}")))?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -155,7 +158,8 @@ mod tests {
         let cloud = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0]], vec![]);
         assert!(matches!(sample_surface(&cloud, 10, 0), Err(MeshError::Invalid(_))));
         let flat = Mesh::new(vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], vec![[0, 1, 2]]);
-        assert!(matches!(sample_surface(&flat, 10, 0), Err(MeshError::Invalid(_))));
+        let error = sample_surface(&flat, 10, 0).unwrap_err().to_string();
+        assert!(error.contains("every face has no area"), "{error}");
         let bad_index = Mesh::new(vec![[0.0; 3]], vec![[0, 1, 2]]);
         assert!(sample_surface(&bad_index, 10, 0).is_err());
         assert_eq!(

@@ -378,7 +378,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
 fn check_points(mesh: &Mesh, limits: &InputLimits) -> Result<(), ApiError> {
     let n = mesh.vertices.len();
     if n == 0 {
-        return Err(ApiError::invalid("no points"));
+        return Err(ApiError::invalid("nothing to reconstruct: the input has no points"));
     }
     if mesh.faces.is_empty() && n < 3 {
         return Err(ApiError::invalid(format!("a point cloud needs at least 3 points, got {n}")));
