@@ -66,6 +66,22 @@ fn time_per_run<T>(budget: Duration, mut f: impl FnMut() -> T) -> Duration {
     start.elapsed() / runs
 }
 
+/// A row of a timing table: what ran on which input, its time per run and how many `unit` it
+/// handles a second, doing `per_run` of them a run.
+fn timed_row(
+    what: impl Into<String>,
+    input: impl Into<String>,
+    t: Duration,
+    per_run: f64,
+    unit: &str,
+) -> [String; 4] {
+    let (ms, rate) = (t.as_secs_f64() * 1e3, per_run / t.as_secs_f64());
+    let ms = if ms < 10.0 { format!("{ms:.2} ms") } else { format!("{ms:.1} ms") };
+    let rate =
+        if rate < 100.0 { format!("{rate:.1} {unit}/s") } else { format!("{rate:.0} {unit}/s") };
+    [what.into(), input.into(), ms, rate]
+}
+
 fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     // A dense, closed test surface: 512 x 256 UV sphere, about 262,000 faces.
     let dense = primitives::uv_sphere(1.0, 512, 256);
@@ -78,31 +94,34 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
         let bytes = write_mesh(&dense, format)?;
         let t = time_per_run(budget, || read_mesh(&bytes, format, &limits));
         let mb = bytes.len() as f64 / 1e6;
-        table.add_row([
+        table.add_row(timed_row(
             format!("parse {format}"),
             format!("{faces} faces, {mb:.1} MB"),
-            format!("{:.1} ms", t.as_secs_f64() * 1e3),
-            format!("{:.0} MB/s", mb / t.as_secs_f64()),
-        ]);
+            t,
+            mb,
+            "MB",
+        ));
     }
 
     let q = Quantizer::new(meshstream::tokenize::DEFAULT_LEVELS)?;
     let t = time_per_run(budget, || tokenize_mesh(&dense, q));
-    table.add_row([
-        "tokenize (normalize, quantize, weld, split, order)".to_string(),
+    table.add_row(timed_row(
+        "tokenize (normalize, quantize, weld, split, order)",
         format!("{faces} faces, Q = {}", q.levels()),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.2} M faces/s", faces as f64 / t.as_secs_f64() / 1e6),
-    ]);
+        t,
+        faces as f64 / 1e6,
+        "M faces",
+    ));
 
     let cloud = sample_surface(&dense, 65_536, 0)?;
     let t = time_per_run(budget, || farthest_point_sampling(&cloud.vertices, 2048, 0));
-    table.add_row([
-        "farthest point sampling".to_string(),
-        "2,048 of 65,536 points".to_string(),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.0} K points/s", 65_536.0 / t.as_secs_f64() / 1e3),
-    ]);
+    table.add_row(timed_row(
+        "farthest point sampling",
+        "2,048 of 65,536 points",
+        t,
+        65_536.0 / 1e3,
+        "K points",
+    ));
 
     // What a request's input costs before the model sees it: the encoder's 1,024 points
     // (drawn independently, or spread over 4 times as many) and the reference, from a mesh
@@ -113,12 +132,13 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             let t = time_per_run(budget, || {
                 input_clouds(input, 1024, oversampling, REFERENCE_POINTS, 0, 1)
             });
-            table.add_row([
+            table.add_row(timed_row(
                 format!("input points (oversampling {oversampling})"),
                 format!("{what} -> 1,024 + {REFERENCE_POINTS}"),
-                format!("{:.1} ms", t.as_secs_f64() * 1e3),
-                format!("{:.0} inputs/s", 1.0 / t.as_secs_f64()),
-            ]);
+                t,
+                1.0,
+                "inputs",
+            ));
         }
     }
 
@@ -126,12 +146,13 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     let gt = primitives::uv_sphere(1.0, 256, 128);
     let opts = MetricOptions::default();
     let t = time_per_run(budget, || mesh_distances(&pred, &gt, &opts));
-    table.add_row([
-        "eval one pair (sample, k-d trees, CD + HD)".to_string(),
+    table.add_row(timed_row(
+        "eval one pair (sample, k-d trees, CD + HD)",
         format!("N = {} points per surface", opts.samples),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.1} pairs/s", 1.0 / t.as_secs_f64()),
-    ]);
+        t,
+        1.0,
+        "pairs",
+    ));
 
     // What a reconstruction's fitting does: a 400-face mesh (the model's size) off its points
     // by a scale and a shift, fitted to an encoder's 1,024 points and to the reference's.
@@ -141,12 +162,13 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     for n in [1024, REFERENCE_POINTS] {
         let points = sample_surface(&truth, n, 0)?;
         let t = time_per_run(budget, || fit_to_points(&off, &points, &fit, 0));
-        table.add_row([
+        table.add_row(timed_row(
             format!("fit to points ({} rounds)", fit.rounds),
             format!("{} faces, {n} points", off.faces.len()),
-            format!("{:.1} ms", t.as_secs_f64() * 1e3),
-            format!("{:.0} rounds/s", fit.rounds as f64 / t.as_secs_f64()),
-        ]);
+            t,
+            fit.rounds as f64,
+            "rounds",
+        ));
     }
 
     // What a fitted reconstruction's end costs for its parts: the sphere with small cubes
@@ -159,15 +181,16 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             cluttered.append(&cube);
         }
         let t = time_per_run(budget, || without_stray_parts(&cluttered, &points, 0));
-        table.add_row([
-            "stray parts".to_string(),
+        table.add_row(timed_row(
+            "stray parts",
             format!(
                 "{} faces, {strays} in cubes inside, {REFERENCE_POINTS} points",
                 cluttered.faces.len()
             ),
-            format!("{:.1} ms", t.as_secs_f64() * 1e3),
-            format!("{:.0} parts/s", strays as f64 / t.as_secs_f64()),
-        ]);
+            t,
+            strays as f64,
+            "parts",
+        ));
     }
     // Fins off the sphere's edges, each a sheet of one face the points do not need.
     for fins in [4, 16] {
@@ -179,26 +202,28 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             finned.faces.push([b, a, finned.vertices.len() as u32 - 1]);
         }
         let t = time_per_run(budget, || without_stray_sheets(&finned, &points, 0));
-        table.add_row([
-            "stray sheets".to_string(),
+        table.add_row(timed_row(
+            "stray sheets",
             format!(
                 "{} faces, {fins} fins off its edges, {REFERENCE_POINTS} points",
                 finned.faces.len()
             ),
-            format!("{:.1} ms", t.as_secs_f64() * 1e3),
-            format!("{:.0} sheets/s", fins as f64 / t.as_secs_f64()),
-        ]);
+            t,
+            fins as f64,
+            "sheets",
+        ));
     }
     // A whole mesh decoded twice over: every edge non-manifold, every face lying on another.
     let mut twice = truth.clone();
     twice.append(&truth);
     let t = time_per_run(budget, || without_folded_faces(&twice));
-    table.add_row([
-        "folded faces".to_string(),
+    table.add_row(timed_row(
+        "folded faces",
         format!("{} faces, each twice", truth.faces.len()),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.0} faces/s", twice.faces.len() as f64 / t.as_secs_f64()),
-    ]);
+        t,
+        twice.faces.len() as f64,
+        "faces",
+    ));
     // Holes to close: every eighth face of the sphere gone, each a loop of 3 on its points.
     let target = FitTarget::new(&sample_surface(&truth, REFERENCE_POINTS, 0)?)?;
     let holed = Mesh {
@@ -215,33 +240,36 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
     let (_, closed) = with_small_holes_filled(&holed, &target, DEFAULT_MAX_HOLE_EDGES);
     let t =
         time_per_run(budget, || with_small_holes_filled(&holed, &target, DEFAULT_MAX_HOLE_EDGES));
-    table.add_row([
-        "small holes".to_string(),
+    table.add_row(timed_row(
+        "small holes",
         format!(
             "{} faces, {missing} missing as {closed} loops, {REFERENCE_POINTS} points",
             holed.faces.len()
         ),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.0} loops/s", closed as f64 / t.as_secs_f64()),
-    ]);
+        t,
+        closed as f64,
+        "loops",
+    ));
     // Faces to turn: a third of the sphere's faces wound inward.
     let mut scrambled = truth.clone();
     scrambled.faces.iter_mut().step_by(3).for_each(|f| f.swap(1, 2));
     let t = time_per_run(budget, || with_faces_facing_out(&scrambled));
-    table.add_row([
-        "faces facing out".to_string(),
+    table.add_row(timed_row(
+        "faces facing out",
         format!("{} faces, a third wound inward", scrambled.faces.len()),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.0} faces/s", scrambled.faces.len() as f64 / t.as_secs_f64()),
-    ]);
+        t,
+        scrambled.faces.len() as f64,
+        "faces",
+    ));
     // What every answer adds to its request: its build and its distance to the input points.
     let t = time_per_run(budget, || MeshQuality::measure(&truth, Some(&points)));
-    table.add_row([
-        "answer quality (edges, parts, input CD)".to_string(),
+    table.add_row(timed_row(
+        "answer quality (edges, parts, input CD)",
         format!("{} faces, {REFERENCE_POINTS} points", truth.faces.len()),
-        format!("{:.1} ms", t.as_secs_f64() * 1e3),
-        format!("{:.0} answers/s", 1.0 / t.as_secs_f64()),
-    ]);
+        t,
+        1.0,
+        "answers",
+    ));
     out(&table)?;
     Ok(())
 }
@@ -256,12 +284,13 @@ fn bench_render(budget: Duration) -> anyhow::Result<()> {
         let options = RenderOptions { width: side, height: side, ..RenderOptions::default() };
         for (name, views) in [("render one view", 1), ("render a grid of 4 views", 4)] {
             let t = time_per_run(budget, || render_grid(&mesh, &options, views));
-            table.add_row([
+            table.add_row(timed_row(
                 name.to_string(),
                 format!("{faces} faces, {side}x{side} per view"),
-                format!("{:.2} ms", t.as_secs_f64() * 1e3),
-                format!("{:.0} views/s", f64::from(views) / t.as_secs_f64()),
-            ]);
+                t,
+                f64::from(views),
+                "views",
+            ));
         }
     }
     out(&table)?;
