@@ -6,7 +6,8 @@ use std::time::{Duration, Instant};
 
 use common::{Server, points_json, shape, stream_through};
 use futures_util::StreamExt;
-use meshstream::mesh::{Format, Mesh, ReadLimits, read_mesh, write_mesh};
+use meshstream::mesh::primitives::uv_sphere;
+use meshstream::mesh::{Format, Mesh, ReadLimits, read_mesh, sample_surface, write_mesh};
 use meshstream::metrics::{point_set_distances, topology};
 use serde_json::{Value, json};
 
@@ -268,8 +269,9 @@ async fn whole_meshes_default_to_the_servers_candidates_and_streams_to_one() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
-    let server =
-        Server::start(&["--candidates", "1", "--fit-rounds", "7", "--reference-points", "500"]);
+    // The decoded faces alone: the convex hull of these points would win against them.
+    let args = ["--candidates", "1", "--fit-rounds", "7", "--reference-points", "500"];
+    let server = Server::start(&[&args[..], &["--hull-faces", "0"]].concat());
     let c = client();
     let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["defaults"]["fit_rounds"], json!({"whole_mesh": 7, "stream": 0}));
@@ -301,7 +303,9 @@ async fn whole_meshes_are_fitted_to_their_points_and_streams_when_they_ask() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fitted_answer_has_its_small_holes_closed_unless_it_asks_not_to() {
-    let server = Server::start(&["--candidates", "1", "--reference-points", "2000"]);
+    // The decoded faces alone: the convex hull of these points would win against them.
+    let server =
+        Server::start(&["--candidates", "1", "--reference-points", "2000", "--hull-faces", "0"]);
     let c = client();
     let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
     assert_eq!(info["defaults"]["max_hole_edges"], 8);
@@ -328,6 +332,28 @@ async fn a_fitted_answer_has_its_small_holes_closed_unless_it_asks_not_to() {
     };
     let (all, kept) = (corners(&closed), corners(&open));
     assert!(kept.iter().all(|f| all.binary_search(f).is_ok()), "a face of the open answer is gone");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fitted_answer_is_the_convex_hull_where_that_ends_closer_and_says_so() {
+    let server = Server::start(&["--candidates", "1", "--reference-points", "2000"]);
+    let c = client();
+    let info: Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["engine"]["hull_faces"], 100);
+    // A ball: the shipped model's decode ends further from its points than their hull does.
+    let ball = sample_surface(&uv_sphere(1.0, 24, 16), 3000, 7).unwrap();
+    let (headers, glb) = reconstruct_glb(&server, &points_json(&ball, json!({}))).await;
+    let header = |headers: &reqwest::header::HeaderMap, name: &str| {
+        headers[name].to_str().unwrap().to_string()
+    };
+    assert_eq!(header(&headers, "x-meshstream-finish-reason"), "convex_hull");
+    assert_eq!(header(&headers, "x-meshstream-watertight"), "true");
+    let hull = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
+    assert!(hull.faces.len() <= 100, "{}", hull.faces.len());
+    // Not fitted: the model's faces only.
+    let as_decoded = points_json(&ball, json!({"fit_rounds": 0}));
+    let (headers, _) = reconstruct_glb(&server, &as_decoded).await;
+    assert_ne!(header(&headers, "x-meshstream-finish-reason"), "convex_hull");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

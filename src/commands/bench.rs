@@ -5,6 +5,7 @@ use std::hint::black_box;
 use std::time::{Duration, Instant};
 
 use clap::Subcommand;
+use meshstream::candidates::{DEFAULT_HULL_FACES, hull_candidate};
 use meshstream::mesh::{
     DEFAULT_MAX_HOLE_EDGES, FitOptions, FitTarget, Format, Mesh, REFERENCE_POINTS, ReadLimits,
     farthest_point_sampling, fit_to_points, input_clouds, primitives, read_mesh, sample_surface,
@@ -213,6 +214,16 @@ fn bench_mesh(budget: Duration) -> anyhow::Result<()> {
             "sheets",
         ));
     }
+    // The convex hull a fitted request judges beside its candidates (its fit as timed above).
+    let reference = Mesh::new(points.clone(), Vec::new());
+    let t = time_per_run(budget, || hull_candidate(&reference, q, DEFAULT_HULL_FACES));
+    table.add_row(timed_row(
+        "convex hull candidate",
+        format!("{REFERENCE_POINTS} points -> at most {DEFAULT_HULL_FACES} faces on the grid"),
+        t,
+        1.0,
+        "hulls",
+    ));
     // A whole mesh decoded twice over: every edge non-manifold, every face lying on another.
     let mut twice = truth.clone();
     twice.append(&truth);

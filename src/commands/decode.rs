@@ -90,7 +90,7 @@ pub fn decode(
             let options = candidate_options(&options, p.candidates);
             let (best, mesh) =
                 best_of(model, latents, options, p.cloud, &p.ending, q, || bar.inc(1))?;
-            (mesh, best.finish)
+            (mesh, best.map_or(FinishReason::ConvexHull, |best| best.finish))
         }
         None => {
             let latents = latents.first().context("nothing to decode from")?;
@@ -122,10 +122,11 @@ pub fn write_decoded(
     let mesh = normalization.invert_mesh(&mesh.without_unused_vertices());
     write(&mesh, &args.output, args.format)?;
     eprintln!(
-        "wrote {}: {} faces, {} vertices in {seconds:.1} s (stopped by {reason:?}); {quality}",
+        "wrote {}: {} faces, {} vertices in {seconds:.1} s (finish reason {}); {quality}",
         args.output.display(),
         mesh.faces.len(),
         mesh.vertices.len(),
+        reason.name(),
     );
     Ok(())
 }

@@ -3,7 +3,9 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS};
+use meshstream::candidates::{
+    DEFAULT_CANDIDATES, DEFAULT_HULL_FACES, DEFAULT_WELD_RADIUS, Ending, MAX_WELD_RADIUS,
+};
 use meshstream::mesh::{
     DEFAULT_MAX_HOLE_EDGES, FitOptions, MAX_HOLE_EDGES, REFERENCE_POINTS, UpAxis, input_clouds,
 };
@@ -73,6 +75,11 @@ pub struct ReconstructArgs {
     /// and the mesh written turned back.
     #[arg(long, default_value = "y")]
     up: UpAxis,
+    /// A fitted reconstruction judges the convex hull of the input points, with at most this many
+    /// faces (and --max-faces), beside its decoded candidates, and answers with it when it ends at
+    /// least 10% closer to the points (finish reason convex_hull); 0 never.
+    #[arg(long, default_value_t = DEFAULT_HULL_FACES)]
+    hull_faces: usize,
 }
 
 pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
@@ -109,6 +116,9 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         weld_radius: args.weld_radius,
         fit: (fit.rounds > 0).then_some(fit),
         max_hole_edges: args.max_hole_edges as usize,
+        // Beside fitted candidates only, as served: unfitted ones are the model's as decoded.
+        hull_faces: (fit.rounds > 0 && args.hull_faces > 0)
+            .then_some(args.hull_faces.min(args.decode.max_faces.unwrap_or(cfg.max_faces))),
     };
     let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
     let decoded = decode(&model, &latents, &args.decode, Some(from_points), args.seed)?;

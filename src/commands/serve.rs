@@ -5,7 +5,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use meshstream::candidates::{DEFAULT_CANDIDATES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS};
+use meshstream::candidates::{
+    DEFAULT_CANDIDATES, DEFAULT_HULL_FACES, DEFAULT_WELD_RADIUS, MAX_WELD_RADIUS,
+};
 use meshstream::diffusion::Framing;
 use meshstream::engine::{Engine, EngineConfig, Metrics};
 use meshstream::mesh::{FitOptions, MAX_FIT_ROUNDS, REFERENCE_POINTS, ReadLimits};
@@ -120,6 +122,13 @@ pub struct ServeArgs {
     #[arg(long, env = "MESHSTREAM_WELD_RADIUS", default_value_t = DEFAULT_WELD_RADIUS,
           value_parser = clap::value_parser!(u16).range(..=i64::from(MAX_WELD_RADIUS)))]
     weld_radius: u16,
+    /// A fitted reconstruction judges the convex hull of its input points, with at most this many
+    /// faces (and its face budget), beside its decoded candidates, and answers with it when it ends
+    /// at least 10% closer to the points, its finish reason then `convex_hull` (see `reconstruct
+    /// --hull-faces`); 0 never. A request that is not fitted (`fit_rounds=0`, streams unless they
+    /// ask) gets the model's faces only.
+    #[arg(long, env = "MESHSTREAM_HULL_FACES", default_value_t = DEFAULT_HULL_FACES)]
+    hull_faces: usize,
     /// Image model folder (the diffusion transformer); default: the model folder's `dit/`,
     /// when it has one. Without one, image requests are answered 501 / UNIMPLEMENTED.
     #[arg(long, env = "MESHSTREAM_IMAGE_MODEL")]
@@ -213,6 +222,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         decode_threads: args.decode_threads,
         max_diffusion_steps: args.max_diffusion_steps,
         image_attempts: args.image_attempts,
+        hull_faces: args.hull_faces,
     };
     let engine = Engine::start(model, image_model, config, Arc::new(Metrics::default()))?;
     let serve_config = ServeConfig {

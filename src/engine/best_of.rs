@@ -12,9 +12,9 @@ use std::time::Instant;
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{Ending, Finished, Judge, candidate_sampling};
+use crate::candidates::{Ending, Finished, Judge, candidate_sampling, hull_wins};
 use crate::mesh::{DEFAULT_MAX_HOLE_EDGES, FitOptions};
-use crate::model::FaceToken;
+use crate::model::{FaceToken, FinishReason};
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
 
 use super::offload::off_runtime;
@@ -40,14 +40,21 @@ pub(super) fn submit(
     let runtime = tokio::runtime::Handle::try_current()
         .map_err(|_| EngineError::Unsupported("best-of-N requests need a tokio runtime".into()))?;
     let cloud = prepared.reference.clone();
+    let fit = match request.options.fit_rounds.unwrap_or(0) {
+        0 => None,
+        rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
+    };
+    // The hull is judged beside fitted candidates only: unfitted ones are the model's as
+    // decoded.
+    let hull_faces = engine.shared.config.hull_faces;
+    let face_budget = request.options.max_faces.unwrap_or_else(|| engine.face_limit());
     let ending = Ending {
         weld_radius: request.options.weld_radius.unwrap_or(0),
-        fit: match request.options.fit_rounds.unwrap_or(0) {
-            0 => None,
-            rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
-        },
+        fit,
         max_hole_edges: request.options.max_hole_edges.unwrap_or(DEFAULT_MAX_HOLE_EDGES),
+        hull_faces: (fit.is_some() && hull_faces > 0).then_some(hull_faces.min(face_budget)),
     };
+    let judged = n + usize::from(ending.hull_faces.is_some());
     let normalization = prepared.normalization;
     let (seed, drafts) = (request.options.sampling.seed, request.options.drafts);
     let started = Instant::now();
@@ -77,7 +84,7 @@ pub(super) fn submit(
     let metrics = Arc::clone(&engine.shared.metrics);
     runtime.spawn(async move {
         // Prepared while the candidates decode.
-        let prepared = off_runtime(&metrics, move || Judge::new(q, cloud, ending, seed, n));
+        let prepared = off_runtime(&metrics, move || Judge::new(q, cloud, ending, seed, judged));
         let judge = match prepared.await {
             Ok(judge) => Arc::new(judge),
             Err(e) => {
@@ -111,10 +118,17 @@ pub(super) fn submit(
             // The client left: dropping the candidates' streams cancels them.
             () = tx.closed() => return,
         };
+        let hull = {
+            let judge = judge.clone();
+            off_runtime(&metrics, move || judge.end_hull(n)).await
+        };
         // The winner's fit goes on in full: every candidate was judged after a cheaper fit.
-        let won = match pick(ended) {
-            Ok((best, ended)) => off_runtime(&metrics, move || (best, judge.finish(ended))).await,
-            Err(e) => Err(e),
+        let won = match (pick(ended), hull) {
+            (Ok((best, ended)), Ok(hull)) => {
+                let (best, ended) = closer_of(best, ended, hull);
+                off_runtime(&metrics, move || (best, judge.finish(ended))).await
+            }
+            (Err(e), _) | (_, Err(e)) => Err(e),
         };
         let event = match won {
             Ok((mut best, ended)) => {
@@ -156,6 +170,19 @@ fn ended_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])
             Some((token, std::array::from_fn(|i| corners[(first + i) % 3])))
         })
         .collect()
+}
+
+/// The decoded winner, or the convex hull candidate when that ended closer to the input
+/// points by the margin ([`hull_wins`]), its summary's finish reason then saying so.
+fn closer_of(best: Completed, ended: Finished, hull: Option<Finished>) -> (Completed, Finished) {
+    match hull {
+        Some(hull) if hull_wins(&hull, &ended) => {
+            let mut best = best;
+            best.summary.finish = FinishReason::ConvexHull;
+            (best, hull)
+        }
+        _ => (best, ended),
+    }
 }
 
 /// The candidate that ended closest to the input points (the first on ties) and how it

@@ -42,6 +42,11 @@ pub struct EngineConfig {
     /// Samples an image request may take: one whose mesh comes out empty is sampled again
     /// from the next seed, up to this many times in all (1: never).
     pub image_attempts: usize,
+    /// A fitted reconstruction of several candidates or one judges the convex hull of its input
+    /// points beside them, with at most this many faces (and its face budget): the answer is the
+    /// hull when it ends at least 10% closer to the points (0: never;
+    /// [`crate::candidates::hull_candidate`]).
+    pub hull_faces: usize,
 }
 
 impl Default for EngineConfig {
@@ -59,6 +64,7 @@ impl Default for EngineConfig {
             decode_threads: 0,
             max_diffusion_steps: 250,
             image_attempts: 3,
+            hull_faces: crate::candidates::DEFAULT_HULL_FACES,
         }
     }
 }

@@ -7,7 +7,7 @@ use crate::mesh::primitives::uv_sphere;
 use crate::mesh::{Mesh, REFERENCE_POINTS, UpAxis};
 use crate::metrics::MeshQuality;
 use crate::model::testing::random_model;
-use crate::model::{GenerateOptions, Generation, generate, step_generations};
+use crate::model::{FinishReason, GenerateOptions, Generation, generate, step_generations};
 use crate::tokenize::{FaceToken, detokenize};
 
 fn engine(config: EngineConfig) -> (Engine, FaceModel) {
@@ -300,7 +300,8 @@ fn a_best_of_request_streams_the_candidate_closest_to_its_points() {
 
 #[test]
 fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
-    let (engine, model) = engine(EngineConfig::default());
+    // The decoded faces alone: the convex hull of a sphere's points would win against them.
+    let (engine, model) = engine(EngineConfig { hull_faces: 0, ..EngineConfig::default() });
     let plain = request(&model, 3, 30);
     let mut fitted = plain.clone();
     fitted.options.fit_rounds = Some(20);
@@ -338,6 +339,26 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
     };
     let (before, after) = (from_points(&plain.mesh), from_points(&fitted.mesh));
     assert!(after < before, "Chamfer distance to the points {before} as decoded, {after} fitted");
+}
+
+#[test]
+fn a_fitted_request_answers_with_the_convex_hull_when_it_ends_closer() {
+    // This test model's decodes of a sphere lie far from its points; their hull does not.
+    for (hull_faces, hull_wins) in [(40, true), (0, false)] {
+        let (engine, model) = engine(EngineConfig { hull_faces, ..EngineConfig::default() });
+        let mut fitted = request(&model, 3, 30);
+        fitted.options.fit_rounds = Some(20);
+        fitted.options.candidates = Some(2);
+        let done = runtime().block_on(async { engine.submit(fitted).unwrap().collect().await });
+        let done = done.unwrap();
+        assert_eq!(done.summary.finish == FinishReason::ConvexHull, hull_wins, "{hull_faces}");
+        if hull_wins {
+            // Within the request's face budget, closed, every face streamed with its token.
+            assert!(done.mesh.faces.len() <= 30, "{}", done.mesh.faces.len());
+            assert!(MeshQuality::measure(&done.mesh, None).watertight);
+            assert_eq!(done.tokens.len(), done.mesh.faces.len());
+        }
+    }
 }
 
 #[test]

@@ -60,6 +60,10 @@ pub enum FinishReason {
     DeadEnd,
     /// The caller stopped the stream.
     Cancelled,
+    /// Not the model's: a reconstruction answered with the convex hull of its input points, which
+    /// ended at least 10% closer to them than every decoded candidate
+    /// ([`crate::candidates::hull_candidate`]).
+    ConvexHull,
 }
 
 impl FinishReason {
@@ -70,6 +74,7 @@ impl FinishReason {
             Self::MaxFaces => "max_faces",
             Self::DeadEnd => "dead_end",
             Self::Cancelled => "cancelled",
+            Self::ConvexHull => "convex_hull",
         }
     }
 }

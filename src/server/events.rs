@@ -26,7 +26,9 @@ pub struct FaceEvent {
 pub struct DoneEvent {
     pub request_id: String,
     pub faces: usize,
-    /// end_of_mesh, max_faces, dead_end or cancelled.
+    /// end_of_mesh, max_faces, dead_end or cancelled; convex_hull when a fitted answer is the
+    /// convex hull of the input points, which ended at least 10% closer to them than every decoded
+    /// candidate.
     pub finish_reason: &'static str,
     pub queued_ms: f64,
     /// The stage before decoding: the point encoder, or diffusion from the image.

@@ -144,7 +144,7 @@ pub fn router(state: AppState, ui: bool, auth: AuthLayer) -> Router {
             ("x-request-id" = String, description = "Given or generated"),
             ("x-meshstream-faces" = usize, description = "Faces in the mesh"),
             ("x-meshstream-time-ms" = f64, description = "Time in the engine"),
-            ("x-meshstream-finish-reason" = String, description = "end_of_mesh, max_faces or dead_end"),
+            ("x-meshstream-finish-reason" = String, description = "end_of_mesh, max_faces or dead_end; convex_hull when a fitted answer is the convex hull of the input points, which ended at least 10% closer to them than every decoded candidate"),
             ("x-meshstream-parts" = usize, description = "Connected parts of the mesh"),
             ("x-meshstream-edges" = usize, description = "Distinct edges, corners welded by position"),
             ("x-meshstream-boundary-edges" = usize, description = "Edges used by one face (holes, open borders)"),
