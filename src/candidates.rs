@@ -70,6 +70,19 @@ pub struct Ending {
     pub hull_faces: Option<usize>,
 }
 
+impl Ending {
+    /// The hull's faces for an ending with `fit`, a setting of `hull_faces` (0: never) and a
+    /// request's `face_budget`: only beside fitted candidates, since unfitted ones are the
+    /// model's as decoded, and never past the budget.
+    pub fn hull_faces_for(
+        fit: Option<FitOptions>,
+        hull_faces: usize,
+        face_budget: usize,
+    ) -> Option<usize> {
+        (fit.is_some() && hull_faces > 0).then_some(hull_faces.min(face_budget))
+    }
+}
+
 /// Points sampled on each candidate's surface to compare it with the input points.
 const FIT_SAMPLES: usize = 4096;
 
@@ -357,13 +370,12 @@ pub fn closest_finished<'a>(
     // Each candidate's fit and judgement is its own: they run in parallel.
     let candidates: Vec<&[FaceToken]> = candidates.collect();
     let hull = candidates.len();
-    let ended: Vec<Finished> = candidates
-        .into_par_iter()
-        .enumerate()
-        .map(|(index, faces)| judge.end(index, faces))
-        .collect();
+    let (ended, hull): (Vec<Finished>, _) = rayon::join(
+        || candidates.into_par_iter().enumerate().map(|(i, faces)| judge.end(i, faces)).collect(),
+        || judge.end_hull(hull),
+    );
     let best = closest(ended)?;
-    let winner = match judge.end_hull(hull) {
+    let winner = match hull {
         Some(hull) if hull_wins(&hull, &best) => hull,
         _ => best,
     };

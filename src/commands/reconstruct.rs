@@ -112,13 +112,16 @@ pub fn run(args: &ReconstructArgs) -> anyhow::Result<()> {
         patience: args.fit_patience,
         ..FitOptions::default()
     };
+    let fit = (fit.rounds > 0).then_some(fit);
     let ending = Ending {
         weld_radius: args.weld_radius,
-        fit: (fit.rounds > 0).then_some(fit),
+        fit,
         max_hole_edges: args.max_hole_edges as usize,
-        // Beside fitted candidates only, as served: unfitted ones are the model's as decoded.
-        hull_faces: (fit.rounds > 0 && args.hull_faces > 0)
-            .then_some(args.hull_faces.min(args.decode.max_faces.unwrap_or(cfg.max_faces))),
+        hull_faces: Ending::hull_faces_for(
+            fit,
+            args.hull_faces,
+            args.decode.max_faces.unwrap_or(cfg.max_faces),
+        ),
     };
     let from_points = FromPoints { cloud: &clouds.reference, candidates: args.candidates, ending };
     let decoded = decode(&model, &latents, &args.decode, Some(from_points), args.seed)?;

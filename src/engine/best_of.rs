@@ -44,15 +44,12 @@ pub(super) fn submit(
         0 => None,
         rounds => Some(FitOptions { rounds, ..FitOptions::default() }),
     };
-    // The hull is judged beside fitted candidates only: unfitted ones are the model's as
-    // decoded.
-    let hull_faces = engine.shared.config.hull_faces;
     let face_budget = request.options.max_faces.unwrap_or_else(|| engine.face_limit());
     let ending = Ending {
         weld_radius: request.options.weld_radius.unwrap_or(0),
         fit,
         max_hole_edges: request.options.max_hole_edges.unwrap_or(DEFAULT_MAX_HOLE_EDGES),
-        hull_faces: (fit.is_some() && hull_faces > 0).then_some(hull_faces.min(face_budget)),
+        hull_faces: Ending::hull_faces_for(fit, engine.shared.config.hull_faces, face_budget),
     };
     let judged = n + usize::from(ending.hull_faces.is_some());
     let normalization = prepared.normalization;
