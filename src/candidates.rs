@@ -12,7 +12,7 @@ use std::sync::Arc;
 use candle_core::Tensor;
 use rayon::prelude::*;
 
-use crate::baseline::{convex_hull, simplify_to_budget};
+use crate::baseline::{convex_hull, simplify_to_budget, simplify_within};
 use crate::mesh::{
     FitOptions, FitTarget, Mesh, fit_to_target, sample_surface, with_faces_facing_out,
     with_small_holes_filled, without_folded_faces, without_stray_parts, without_stray_sheets,
@@ -199,6 +199,17 @@ pub struct Finished {
     pub distance: f64,
 }
 
+/// The convex hull candidate ended and judged ([`Judge::end_hull`]).
+#[derive(Debug, Clone)]
+pub struct EndedHull {
+    /// The form of the hull that answers if the hull wins.
+    pub finished: Finished,
+    /// How far its closest form ends from the input points: what decoded candidates are
+    /// measured against ([`hull_wins`]), so that the lighter form changes how the hull
+    /// answers, never whether.
+    pub closest: f64,
+}
+
 /// How one reconstruction ends its candidates (welded, then fitted to its input points when
 /// asked) and judges them: prepared once, so that every candidate fits to the same prepared
 /// points, and each candidate can be ended on its own as soon as it is decoded ([`Self::end`]).
@@ -249,11 +260,20 @@ impl Judge {
         self.end_mesh(index, decoded)
     }
 
-    /// The convex hull candidate ([`hull_candidate`]) ended and judged as candidate `index`;
-    /// `None` when not asked for or when the points span no volume.
-    pub fn end_hull(&self, index: usize) -> Option<Finished> {
+    /// The convex hull candidate ([`hull_candidate`]) ended and judged as candidate `index`,
+    /// and its lighter form ([`lighter_hull`]) beside it, which is kept unless the full hull
+    /// ends closer by the margin ([`closer_by_margin`]); `None` when not asked for or when the
+    /// points span no volume.
+    pub fn end_hull(&self, index: usize) -> Option<EndedHull> {
         let hull = hull_candidate(&self.cloud, self.q, self.ending.hull_faces?)?;
-        Some(self.end_mesh(index, hull))
+        let light = lighter_hull(&hull);
+        let full = self.end_mesh(index, hull);
+        let closest = full.distance;
+        let finished = match light.map(|light| self.end_mesh(index, light)) {
+            Some(light) if !closer_by_margin(&full, &light) => light,
+            _ => full,
+        };
+        Some(EndedHull { finished, closest })
     }
 
     /// Candidate `index`, decoded (and welded) as `decoded`, ended and judged.
@@ -376,24 +396,37 @@ pub fn closest_finished<'a>(
     );
     let best = closest(ended)?;
     let winner = match hull {
-        Some(hull) if hull_wins(&hull, &best) => hull,
+        Some(hull) if hull_wins(&hull, &best) => hull.finished,
         _ => best,
     };
     Some(judge.finish(winner))
 }
 
 /// The convex hull candidate wins only when it ends this share closer to the input points than
-/// the closest decoded candidate. Why: where the two are about as close, the decoded one is the
-/// lighter, artist-like mesh (a box of 12 faces against a hull of 100 with bevelled corners);
-/// on the dev split the margin took the hull's wins from 111 to 73 for the same closeness
+/// the closest decoded candidate, and the full hull only when it ends this share closer than
+/// its lighter form. Why: where the two are about as close, the other is the lighter,
+/// artist-like mesh (a box of 12 faces against a hull of 100 with bevelled corners); on the
+/// dev split the margin took the hull's wins from 111 to 73 for the same closeness
 /// (`docs/decisions.md`, "The convex hull as a candidate").
 pub const HULL_MARGIN: f64 = 0.1;
 
-/// Whether the `hull` candidate, ended and judged, is the answer rather than the closest
-/// `decoded` one ([`HULL_MARGIN`]).
-pub fn hull_wins(hull: &Finished, decoded: &Finished) -> bool {
-    hull.distance < (1.0 - HULL_MARGIN) * decoded.distance
+/// Whether `a` ended closer to the input points than `b` by [`HULL_MARGIN`].
+pub fn closer_by_margin(a: &Finished, b: &Finished) -> bool {
+    a.distance < (1.0 - HULL_MARGIN) * b.distance
 }
+
+/// Whether the `hull` candidate, ended and judged, is the answer rather than the closest
+/// `decoded` one: when its closest form is closer by [`HULL_MARGIN`].
+pub fn hull_wins(hull: &EndedHull, decoded: &Finished) -> bool {
+    hull.closest < (1.0 - HULL_MARGIN) * decoded.distance
+}
+
+/// How far (meshoptimizer's relative error, a share of the hull's extent) the lighter form of
+/// the hull may lie from the full one: about one cell of the shipped model's grid (128 cells
+/// across an extent of 2). Why: points on a flat side snap to the grid within half a cell of
+/// it, and the hull of them covers the side with slivers that follow that noise; within a cell,
+/// a side is one polygon again.
+const HULL_FLATNESS: f32 = 0.01;
 
 /// The convex hull of `cloud`'s points with its corners on grid `q`, brought down to at most
 /// `max_faces` faces: a closed candidate that convex inputs (rocks, gems, barrels) are often
@@ -403,6 +436,13 @@ pub fn hull_candidate(cloud: &Mesh, q: Quantizer, max_faces: usize) -> Option<Me
         cloud.vertices.iter().map(|p| p.map(|c| q.dequantize(q.quantize(c)))).collect();
     let hull = convex_hull(&on_grid).ok()?;
     simplify_to_budget(&hull, max_faces).ok()
+}
+
+/// `hull` with its flat sides' slivers collapsed ([`HULL_FLATNESS`]); `None` when that drops
+/// no face.
+pub fn lighter_hull(hull: &Mesh) -> Option<Mesh> {
+    let light = simplify_within(hull, hull.faces.len(), HULL_FLATNESS).ok()?;
+    (light.faces.len() < hull.faces.len()).then_some(light)
 }
 
 /// The `decoded` mesh (normalized frame) with its corners fitted to the input `target` (see
@@ -549,14 +589,19 @@ mod tests {
         let (q, cloud, _) = cube_and_its_points();
         let hull = hull_candidate(&cloud, q, 40).unwrap();
         assert!(hull.faces.len() <= 40 && hull.faces.len() >= 12, "{}", hull.faces.len());
-        let quality = crate::metrics::MeshQuality::measure(&hull, None);
-        assert!(quality.watertight, "{quality:?}");
-        // As close to the points as the cube they were sampled on.
+        // Its lighter form: about the cube's 12 faces.
+        let light = lighter_hull(&hull).unwrap();
+        assert!(light.faces.len() <= 16, "{}", light.faces.len());
         let distance = |mesh: &Mesh| input_distance(mesh, &cloud.vertices, 0);
         let cube = distance(&cuboid([1.6; 3]));
-        assert!(distance(&hull) < 1.05 * cube, "{} against {cube}", distance(&hull));
         let on_grid = |c: f32| q.dequantize(q.quantize(c)) == c;
-        assert!(hull.vertices.iter().flatten().all(|&c| on_grid(c)));
+        for hull in [hull, light] {
+            let quality = crate::metrics::MeshQuality::measure(&hull, None);
+            assert!(quality.watertight, "{quality:?}");
+            // As close to the points as the cube they were sampled on.
+            assert!(distance(&hull) < 1.05 * cube, "{} against {cube}", distance(&hull));
+            assert!(hull.vertices.iter().flatten().all(|&c| on_grid(c)));
+        }
         let flat = Mesh::new(cloud.vertices.iter().map(|p| [p[0], p[1], 0.0]).collect(), vec![]);
         assert_eq!(hull_candidate(&flat, q, 40), None, "flat points have no hull");
     }
@@ -570,7 +615,8 @@ mod tests {
         let judged = |ending| closest_finished([half].into_iter(), q, &cloud, &ending, 0).unwrap();
         let best = judged(with_hull);
         assert_eq!(best.index, 1, "the hull comes after the decoded candidates");
-        assert!(best.mesh.faces.len() <= 40);
+        // In its lighter form, as close as the full one.
+        assert!(best.mesh.faces.len() <= 16, "{}", best.mesh.faces.len());
         let distance = |mesh: &Mesh| input_distance(mesh, &cloud.vertices, 0);
         assert!(distance(&best.mesh) < 1.05 * distance(&cuboid([1.6; 3])));
         assert_eq!(judged(fitted).index, 0, "without the hull the half cube is all there is");

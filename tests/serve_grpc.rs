@@ -132,6 +132,10 @@ async fn files_are_accepted_and_bad_input_is_invalid_argument() {
             options: Some(Options { max_hole_edges: Some(33), ..Options::default() }),
             ..points_request(10)
         },
+        ReconstructRequest {
+            options: Some(Options { hull_faces: Some(100_000), ..Options::default() }),
+            ..points_request(10)
+        },
     ];
     for (i, request) in bad.into_iter().enumerate() {
         let status = grpc.reconstruct(request).await.map(|_| ()).unwrap_err();

@@ -350,10 +350,24 @@ async fn a_fitted_answer_is_the_convex_hull_where_that_ends_closer_and_says_so()
     assert_eq!(header(&headers, "x-meshstream-watertight"), "true");
     let hull = read_mesh(&glb, Format::Gltf, &ReadLimits::default()).unwrap();
     assert!(hull.faces.len() <= 100, "{}", hull.faces.len());
-    // Not fitted: the model's faces only.
-    let as_decoded = points_json(&ball, json!({"fit_rounds": 0}));
-    let (headers, _) = reconstruct_glb(&server, &as_decoded).await;
-    assert_ne!(header(&headers, "x-meshstream-finish-reason"), "convex_hull");
+    // Not fitted, or asked for no hull: the model's faces only.
+    for options in [json!({"fit_rounds": 0}), json!({"hull_faces": 0})] {
+        let as_decoded = points_json(&ball, options.clone());
+        let (headers, _) = reconstruct_glb(&server, &as_decoded).await;
+        assert_ne!(header(&headers, "x-meshstream-finish-reason"), "convex_hull", "{options}");
+    }
+    // A hull of fewer faces, asked in the query of a raw mesh body.
+    let r = client()
+        .post(server.url("/reconstruct?hull_faces=40"))
+        .header("content-type", "application/ply")
+        .body(write_mesh(&uv_sphere(1.0, 24, 16), Format::Ply).unwrap())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(header(r.headers(), "x-meshstream-finish-reason"), "convex_hull");
+    let hull = read_mesh(&r.bytes().await.unwrap(), Format::Gltf, &ReadLimits::default()).unwrap();
+    assert!(hull.faces.len() <= 40, "{}", hull.faces.len());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -503,6 +517,13 @@ async fn bad_input_gets_its_code_and_the_server_survives_garbage() {
         (
             json,
             format!(r#"{{"points": {three}, "max_hole_edges": 33}}"#).into_bytes(),
+            "",
+            422,
+            "invalid_input",
+        ),
+        (
+            json,
+            format!(r#"{{"points": {three}, "hull_faces": 100000}}"#).into_bytes(),
             "",
             422,
             "invalid_input",

@@ -11,7 +11,7 @@ mod simplify;
 pub use error::BaselineError;
 pub use hull::convex_hull;
 pub use poisson::{MAX_POISSON_DEPTH, PoissonOptions, poisson_surface};
-pub use simplify::simplify_to_budget;
+pub use simplify::{simplify_to_budget, simplify_within};
 
 use crate::mesh::Mesh;
 

@@ -12,7 +12,7 @@ use std::time::Instant;
 use futures_util::future::join_all;
 use tokio::sync::mpsc;
 
-use crate::candidates::{Ending, Finished, Judge, candidate_sampling, hull_wins};
+use crate::candidates::{EndedHull, Ending, Finished, Judge, candidate_sampling, hull_wins};
 use crate::mesh::{DEFAULT_MAX_HOLE_EDGES, FitOptions};
 use crate::model::{FaceToken, FinishReason};
 use crate::tokenize::{Quantizer, canonical_face, canonical_start};
@@ -49,7 +49,11 @@ pub(super) fn submit(
         weld_radius: request.options.weld_radius.unwrap_or(0),
         fit,
         max_hole_edges: request.options.max_hole_edges.unwrap_or(DEFAULT_MAX_HOLE_EDGES),
-        hull_faces: Ending::hull_faces_for(fit, engine.shared.config.hull_faces, face_budget),
+        hull_faces: Ending::hull_faces_for(
+            fit,
+            request.options.hull_faces.unwrap_or(engine.shared.config.hull_faces),
+            face_budget,
+        ),
     };
     let judged = n + usize::from(ending.hull_faces.is_some());
     let normalization = prepared.normalization;
@@ -69,6 +73,7 @@ pub(super) fn submit(
                     fit_rounds: None,
                     weld_radius: None,
                     max_hole_edges: None,
+                    hull_faces: None,
                     drafts: false,
                     ..request.options.clone()
                 },
@@ -171,12 +176,12 @@ fn ended_faces(ended: &Finished, q: Quantizer) -> Vec<(FaceToken, [[f32; 3]; 3])
 
 /// The decoded winner, or the convex hull candidate when that ended closer to the input
 /// points by the margin ([`hull_wins`]), its summary's finish reason then saying so.
-fn closer_of(best: Completed, ended: Finished, hull: Option<Finished>) -> (Completed, Finished) {
+fn closer_of(best: Completed, ended: Finished, hull: Option<EndedHull>) -> (Completed, Finished) {
     match hull {
         Some(hull) if hull_wins(&hull, &ended) => {
             let mut best = best;
             best.summary.finish = FinishReason::ConvexHull;
-            (best, hull)
+            (best, hull.finished)
         }
         _ => (best, ended),
     }

@@ -244,6 +244,13 @@ impl Engine {
                 "max_hole_edges must be at most {MAX_HOLE_EDGES}, got {n}"
             )));
         }
+        if let Some(n) = request.options.hull_faces
+            && n > limit
+        {
+            return Err(EngineError::InvalidInput(format!(
+                "hull_faces must be at most {limit} (the face limit), got {n}"
+            )));
+        }
         let weld_radius = request.options.weld_radius.unwrap_or(0);
         if weld_radius > MAX_WELD_RADIUS {
             return Err(EngineError::InvalidInput(format!(

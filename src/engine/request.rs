@@ -177,6 +177,11 @@ pub struct DecodeOptions {
     /// points cover them ([`crate::mesh::with_small_holes_filled`]); points requests only.
     /// `None`: [`crate::mesh::DEFAULT_MAX_HOLE_EDGES`]; below 3: none.
     pub max_hole_edges: Option<usize>,
+    /// A fitted answer may be the convex hull of the input points with at most this many
+    /// faces ([`crate::candidates::hull_candidate`]), within the face budget; 0: never.
+    /// `None`: the engine's setting (`EngineConfig::hull_faces`). Points requests only,
+    /// fitted ones: others are the model's faces.
+    pub hull_faces: Option<usize>,
     /// While an answer whose faces come at the end (several candidates, welded or fitted) is
     /// made, stream the first candidate's faces as they are decoded, as [`super::Event::Draft`]s:
     /// a client watching sees the decoding, then the answer. Ignored where the faces come as

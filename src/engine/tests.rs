@@ -254,6 +254,9 @@ fn invalid_options_are_refused_before_queueing() {
     r.options.max_hole_edges = Some(crate::mesh::MAX_HOLE_EDGES + 1);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
     r.options.max_hole_edges = None;
+    r.options.hull_faces = Some(engine.face_limit() + 1);
+    assert!(matches!(engine.submit(r.clone()), Err(EngineError::InvalidInput(_))));
+    r.options.hull_faces = None;
     // Best-of-N runs a task that picks the winner: outside a runtime it has nowhere to run.
     r.options.candidates = Some(2);
     assert!(matches!(engine.submit(r.clone()), Err(EngineError::Unsupported(_))));
@@ -344,14 +347,19 @@ fn a_fitted_request_streams_its_faces_moved_closer_to_its_points() {
 #[test]
 fn a_fitted_request_answers_with_the_convex_hull_when_it_ends_closer() {
     // This test model's decodes of a sphere lie far from its points; their hull does not.
-    for (hull_faces, hull_wins) in [(40, true), (0, false)] {
-        let (engine, model) = engine(EngineConfig { hull_faces, ..EngineConfig::default() });
+    // The engine's setting holds unless the request says otherwise.
+    let settings = [(40, None, true), (0, None, false), (40, Some(0), false), (0, Some(40), true)];
+    for (configured, asked, hull_wins) in settings {
+        let config = EngineConfig { hull_faces: configured, ..EngineConfig::default() };
+        let (engine, model) = engine(config);
         let mut fitted = request(&model, 3, 30);
         fitted.options.fit_rounds = Some(20);
         fitted.options.candidates = Some(2);
+        fitted.options.hull_faces = asked;
         let done = runtime().block_on(async { engine.submit(fitted).unwrap().collect().await });
         let done = done.unwrap();
-        assert_eq!(done.summary.finish == FinishReason::ConvexHull, hull_wins, "{hull_faces}");
+        let setting = format!("{configured} configured, {asked:?} asked");
+        assert_eq!(done.summary.finish == FinishReason::ConvexHull, hull_wins, "{setting}");
         if hull_wins {
             // Within the request's face budget, closed, every face streamed with its token.
             assert!(done.mesh.faces.len() <= 30, "{}", done.mesh.faces.len());

@@ -168,6 +168,7 @@ impl GrpcService {
             // Past u16 is past the limit too: saturate, and let the check refuse it.
             weld_radius: options.weld_radius.map(|n| u16::try_from(n).unwrap_or(u16::MAX)),
             max_hole_edges: options.max_hole_edges.map(|n| n as usize),
+            hull_faces: options.hull_faces.map(|n| n as usize),
             seed: options.seed,
             format: None,
             up: options.up,

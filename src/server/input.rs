@@ -60,6 +60,12 @@ pub struct ReconstructOptions {
     /// every hole. Default 8 (see `/v1/info`); only a fitted mesh (`fit_rounds` above 0).
     #[param(maximum = 32)]
     pub max_hole_edges: Option<usize>,
+    /// A fitted answer may be the convex hull of the input points with at most this many
+    /// faces (and `max_faces`), chosen where it ends at least 10% closer to the points than
+    /// every decoded candidate (finish reason `convex_hull`); 0 never. Default: the server's
+    /// setting (100 unless configured, see `/v1/info`); only a fitted mesh (`fit_rounds`
+    /// above 0).
+    pub hull_faces: Option<usize>,
     /// Seed of the point sampling and of the decoding when it samples.
     #[param(schema_with = seed_schema)]
     pub seed: Option<u64>,
@@ -110,6 +116,7 @@ pub struct PointsBody {
     pub weld_radius: Option<u16>,
     #[schema(maximum = 32)]
     pub max_hole_edges: Option<usize>,
+    pub hull_faces: Option<usize>,
     #[schema(schema_with = seed_schema)]
     pub seed: Option<u64>,
     #[schema(value_type = Option<MeshFormat>)]
@@ -217,6 +224,7 @@ impl ReconstructOptions {
             )));
         }
         decode.max_hole_edges = self.max_hole_edges;
+        decode.hull_faces = self.hull_faces;
         decode.drafts = self.drafts.unwrap_or(false);
         let up = self.up.as_deref().map(str::parse).transpose().map_err(ApiError::invalid)?;
         Ok(ParsedRequest { input, decode, seed, format, up: up.unwrap_or_default() })
@@ -367,6 +375,7 @@ fn parse_json(body: &[u8], limits: &InputLimits) -> Result<ParsedRequest, ApiErr
         fit_rounds: b.fit_rounds,
         weld_radius: b.weld_radius,
         max_hole_edges: b.max_hole_edges,
+        hull_faces: b.hull_faces,
         seed: b.seed,
         format: b.format,
         up: b.up,
