@@ -607,6 +607,32 @@ mod tests {
     }
 
     #[test]
+    fn the_hull_answers_in_its_lighter_form_unless_the_full_one_ends_closer_by_the_margin() {
+        let q = Quantizer::new(128).unwrap();
+        let ended = |shape: &Mesh| {
+            let cloud = sample_surface(shape, 16384, 3).unwrap();
+            let fitted = Ending {
+                fit: Some(FitOptions::default()),
+                hull_faces: Some(100),
+                ..Ending::default()
+            };
+            let judge = Judge::new(q, Arc::new(cloud), fitted, 0, 2);
+            judge.end_hull(0).unwrap()
+        };
+        // A slab: its lighter form is a box of 12 faces, as close as the full hull.
+        let slab = ended(&cuboid([2.0, 2.0, 0.06]));
+        assert!(slab.finished.decoded.faces.len() <= 12, "{}", slab.finished.decoded.faces.len());
+        // A thin spindle: collapsed within a cell, its round sides end a fifth further.
+        let mut spindle = crate::mesh::primitives::uv_sphere(1.0, 64, 32);
+        for v in &mut spindle.vertices {
+            (v[0], v[2]) = (0.1 * v[0], 0.1 * v[2]);
+        }
+        let spindle = ended(&spindle);
+        assert_eq!(spindle.finished.decoded.faces.len(), 100);
+        assert_eq!(spindle.closest, spindle.finished.distance);
+    }
+
+    #[test]
     fn the_hull_wins_where_it_ends_closer_than_every_decoded_candidate() {
         let (q, cloud, whole) = cube_and_its_points();
         let half = &whole[..6];
