@@ -262,7 +262,7 @@ impl Judge {
 
     /// The convex hull candidate ([`hull_candidate`]) ended and judged as candidate `index`,
     /// and its lighter form ([`lighter_hull`]) beside it, which is kept unless the full hull
-    /// ends closer by the margin ([`closer_by_margin`]); `None` when not asked for or when the
+    /// ends closer by the margin ([`HULL_MARGIN`]); `None` when not asked for or when the
     /// points span no volume.
     pub fn end_hull(&self, index: usize) -> Option<EndedHull> {
         let hull = hull_candidate(&self.cloud, self.q, self.ending.hull_faces?)?;
@@ -270,7 +270,7 @@ impl Judge {
         let full = self.end_mesh(index, hull);
         let closest = full.distance;
         let finished = match light.map(|light| self.end_mesh(index, light)) {
-            Some(light) if !closer_by_margin(&full, &light) => light,
+            Some(light) if !closer_by_margin(full.distance, light.distance) => light,
             _ => full,
         };
         Some(EndedHull { finished, closest })
@@ -410,15 +410,15 @@ pub fn closest_finished<'a>(
 /// (`docs/decisions.md`, "The convex hull as a candidate").
 pub const HULL_MARGIN: f64 = 0.1;
 
-/// Whether `a` ended closer to the input points than `b` by [`HULL_MARGIN`].
-pub fn closer_by_margin(a: &Finished, b: &Finished) -> bool {
-    a.distance < (1.0 - HULL_MARGIN) * b.distance
+/// Whether distance `a` to the input points is closer than `b` by [`HULL_MARGIN`].
+fn closer_by_margin(a: f64, b: f64) -> bool {
+    a < (1.0 - HULL_MARGIN) * b
 }
 
 /// Whether the `hull` candidate, ended and judged, is the answer rather than the closest
 /// `decoded` one: when its closest form is closer by [`HULL_MARGIN`].
 pub fn hull_wins(hull: &EndedHull, decoded: &Finished) -> bool {
-    hull.closest < (1.0 - HULL_MARGIN) * decoded.distance
+    closer_by_margin(hull.closest, decoded.distance)
 }
 
 /// How far (meshoptimizer's relative error, a share of the hull's extent) the lighter form of
